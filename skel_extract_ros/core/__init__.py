@@ -1,0 +1,1 @@
+"""The skeleton extraction algorithm: pure numpy / scipy / Open3D, never rclpy."""

@@ -1,0 +1,58 @@
+"""The `skel-extract` command line, run as a user runs it."""
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+CLI = shutil.which('skel-extract', path=str(Path(sys.executable).parent)) or 'skel-extract'
+
+
+def run(*args):
+    return subprocess.run([CLI, *map(str, args)], capture_output=True, text=True, timeout=600)
+
+
+def test_simulate_info_evaluate(tmp_path):
+    bag = tmp_path / 'fish_bag'
+    done = run('simulate', '--subject', 'fish', '--frames', '12', '--out', bag, '--seed', '4',
+               '--resolution', '640x480', '--clutter')
+    assert done.returncode == 0, done.stderr
+    assert 'valid points per frame' in done.stdout
+    assert 'simulate fish' in done.stderr  # progress
+    assert (bag / 'gt.npz').is_file() and (bag / 'metadata.yaml').is_file()
+    info = run('info', bag)
+    assert info.returncode == 0 and '12 clouds' in info.stdout and '480x640' in info.stdout
+
+    gt = np.load(bag / 'gt.npz')
+    skeleton = {'frame_id': 'camera_depth_optical_frame', 'joint_names': [str(n) for n in gt['joint_names']],
+                'parents': gt['joint_parents'].tolist(), 'rest_positions': gt['joints'][0].tolist(),
+                'frames': [{'stamp': float(s), 'positions': p.tolist()} for s, p in zip(gt['stamps'], gt['joints'])]}
+    (tmp_path / 'skeleton.json').write_text(json.dumps(skeleton))
+    np.savez(tmp_path / 'registered.npz', points=gt['surface_points'][:, ::3], stamps=gt['stamps'])
+    done = run('evaluate', '--pred', tmp_path / 'skeleton.json', '--gt', bag / 'gt.npz',
+               '--registered', tmp_path / 'registered.npz', '--json')
+    assert done.returncode == 0, done.stderr
+    report = json.loads(done.stdout)
+    assert report['joints']['recall'] == 1.0 and report['joints']['mean_error_m'] < 1e-6
+    assert report['registration']['mean_error_m'] < 1e-6
+
+
+@pytest.mark.parametrize('args, message', [
+    (['info', '/nonexistent/bag'], 'does not exist'),
+    (['evaluate', '--gt', '/nonexistent/gt.npz', '--pred', 'x.json'], 'does not exist'),
+    (['simulate', '--subject', 'hand', '--frames', '1', '--out', '/tmp/unused_skel_bag'], 'at least 2'),
+])
+def test_bad_input_is_one_clear_line(args, message):
+    done = run(*args)
+    assert done.returncode == 2
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith('skel-extract: error:') and message in lines[0]
+
+
+def test_existing_output_is_not_overwritten(tmp_path):
+    (tmp_path / 'exists').mkdir()
+    done = run('simulate', '--subject', 'arm', '--frames', '3', '--out', tmp_path / 'exists')
+    assert done.returncode == 2 and 'already exists' in done.stderr
