@@ -30,6 +30,10 @@ setup(
         'PyYAML>=6.0',
         'tqdm>=4.60',
     ],
+    extras_require={
+        # benchmark-only peers: Coherent Point Drift implementations
+        'bench': ['rustcpd==4.0.0', 'pycpd==2.0.0'],
+    },
     zip_safe=True,
     maintainer='skel_extract_ros developers',
     maintainer_email='skel-extract@example.com',

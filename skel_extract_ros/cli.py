@@ -78,6 +78,89 @@ def _cmd_evaluate(args) -> int:
     return 0
 
 
+def _parse_frame_range(text: str | None):
+    """'a:b' -> slice(a, b) over frame indices (either side may be empty)."""
+    if not text:
+        return slice(None)
+    try:
+        start, _, stop = text.partition(':')
+        if not _:
+            raise ValueError
+        return slice(int(start) if start else None, int(stop) if stop else None)
+    except ValueError:
+        raise UserError(f'--frames must look like a:b (frame indices), got {text!r}') from None
+
+
+def _cmd_run(args) -> int:
+    import itertools
+
+    from .bag import BagError, cloud_topics, read_cloud_frames, select_cloud_topic
+    from .core.sequence import SequenceRegistration
+    from .progress import progress_bar
+    from .params import ParamsError, load_params_file, registration_params_from_dict
+
+    out = Path(args.out)
+    frames_slice = _parse_frame_range(args.frames)
+    try:
+        if args.params:
+            nodes = load_params_file(args.params)
+            params, rest_params, preprocess_params = registration_params_from_dict(
+                nodes.get('registration_node', {}))
+        else:
+            params = rest_params = preprocess_params = None
+        topic = select_cloud_topic(args.input, args.topic)
+        n_messages = cloud_topics(args.input)[topic]
+    except (BagError, ParamsError) as error:
+        raise UserError(str(error)) from None
+    start, stop, _ = frames_slice.indices(n_messages)
+    n_frames = max(0, stop - start)
+    if n_frames < 2:
+        raise UserError(f'{args.input}: {n_frames} frame(s) selected on {topic}; at least 2 are needed')
+    out.mkdir(parents=True, exist_ok=True)
+
+    stamps, frame_ids = [], set()
+
+    def clouds():
+        for frame in itertools.islice(read_cloud_frames(args.input, topic), start, stop):
+            stamps.append(frame.stamp)
+            frame_ids.add(frame.frame_id)
+            yield frame.points
+
+    registration = SequenceRegistration(params, rest_params, preprocess_params)
+    progress = progress_bar(total=n_frames, desc='register', unit='frame')
+    counts = {}
+
+    def on_frame(_index, status):
+        counts[status] = counts.get(status, 0) + 1
+        progress.set_postfix(counts, refresh=False)
+        progress.update()
+
+    started = time.perf_counter()
+    try:
+        registered = registration.register(clouds(), on_frame=on_frame)
+    except BagError as error:
+        raise UserError(str(error)) from None
+    finally:
+        progress.close()
+    total = time.perf_counter() - started
+    if registration.rest_pose_ is None:
+        raise UserError(f'{args.input}: no frame had enough points for a rest pose '
+                        '(is the subject in view? check the preprocessing parameters)')
+    np.savez_compressed(out / 'registered.npz', points=registered, stamps=np.array(stamps),
+                        status=registration.statuses_, sigma2=registration.sigma2_,
+                        rest_points=registration.rest_pose_.points.astype(np.float32),
+                        frame_id=np.array(sorted(frame_ids)[0] if frame_ids else ''))
+    times = registration.times_
+    per_frame = np.array(times.per_frame_registration) * 1000.0
+    print(f'registered {len(registered)} frames of {registered.shape[1]} points in {total:.1f} s '
+          f'-> {out / "registered.npz"}')
+    print(f'  preprocess {times.preprocess:.1f} s | rest pose {times.rest_pose:.1f} s | '
+          f'registration {times.registration:.1f} s (median {np.median(per_frame):.0f} ms/frame, '
+          f'max {per_frame.max():.0f})')
+    print('  frames: ' + ', '.join(f'{n} {status}' for status, n in sorted(counts.items())))
+    return 0
+
+
 def _cmd_info(args) -> int:
     from .bag import BagError, read_cloud_frames, select_cloud_topic
     try:
@@ -130,6 +213,14 @@ def build_parser() -> argparse.ArgumentParser:
                           help='match distance in m (default 0.15, scaled down for small subjects)')
     evaluate.add_argument('--json', action='store_true', help='print the full report as JSON')
     evaluate.set_defaults(handler=_cmd_evaluate)
+
+    run = commands.add_parser('run', help='run the pipeline on a bag and write the results to --out')
+    run.add_argument('input', help='rosbag2 directory (mcap or sqlite3) or .mcap file')
+    run.add_argument('--out', required=True, help='output directory (created if missing)')
+    run.add_argument('--topic', default=None, help='PointCloud2 topic (default: the only one)')
+    run.add_argument('--params', default=None, help='ROS 2 parameter YAML (params/skel_extract.yaml)')
+    run.add_argument('--frames', default=None, help='frame index range a:b (python slice)')
+    run.set_defaults(handler=_cmd_run)
 
     info = commands.add_parser('info', help='summarise the point clouds in a bag')
     info.add_argument('input', help='rosbag2 directory or .mcap file')

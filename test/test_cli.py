@@ -56,3 +56,33 @@ def test_existing_output_is_not_overwritten(tmp_path):
     (tmp_path / 'exists').mkdir()
     done = run('simulate', '--subject', 'arm', '--frames', '3', '--out', tmp_path / 'exists')
     assert done.returncode == 2 and 'already exists' in done.stderr
+
+
+def test_run_on_the_sample_bag_writes_registered_points(tmp_path, sample_bag):
+    out = tmp_path / 'out'
+    done = run('run', sample_bag, '--out', out, '--frames', '0:15')
+    assert done.returncode == 0, done.stderr
+    assert 'registration' in done.stdout and 'ms/frame' in done.stdout
+    assert 'register' in done.stderr  # progress
+    data = np.load(out / 'registered.npz')
+    gt = np.load(sample_bag / 'gt.npz')
+    assert data['points'].shape == (15, 2000, 3)
+    np.testing.assert_allclose(data['stamps'], gt['stamps'][:15])
+    assert str(data['frame_id']) == 'camera_depth_optical_frame'
+    done = run('evaluate', '--gt', sample_bag / 'gt.npz', '--registered', out / 'registered.npz', '--json')
+    registration = json.loads(done.stdout)['registration']
+    assert registration['mean_error_m'] < 0.03, registration
+
+
+def test_run_errors(tmp_path, sample_bag):
+    done = run('run', tmp_path / 'missing', '--out', tmp_path / 'o')
+    assert done.returncode == 2 and 'does not exist' in done.stderr
+    done = run('run', sample_bag, '--out', tmp_path / 'o', '--frames', '3:4')
+    assert done.returncode == 2 and 'at least 2' in done.stderr
+    done = run('run', sample_bag, '--out', tmp_path / 'o', '--topic', '/nope')
+    assert done.returncode == 2 and 'no PointCloud2 topic /nope' in done.stderr
+    params = tmp_path / 'p.yaml'
+    params.write_text('registration_node:\n  ros__parameters:\n    omgea: 0.1\n')
+    done = run('run', sample_bag, '--out', tmp_path / 'o', '--params', params)
+    assert done.returncode == 2 and 'omgea' in done.stderr
+    assert all(len(d.strip().splitlines()) == 1 for d in [done.stderr])

@@ -5,8 +5,8 @@ from dataclasses import dataclass
 
 import numpy as np
 import open3d as o3d
-from tqdm import tqdm
 
+from ..progress import progress_bar
 from .camera import DepthCamera, Intrinsics, NoiseModel, look_at
 from .meshes import inside_any, mesh_area, sample_surface, shape_mesh
 from .motion import bone_transforms, make_motion
@@ -116,15 +116,17 @@ def generate_sequence(subject_name: str, frames: int, resolution: str = '320x240
 
     clouds = []
     surface = np.empty((frames, len(local_samples), 3), dtype=np.float32)
-    for f in tqdm(range(frames), desc=f'simulate {subject_name}', unit='frame',
-                  disable=not progress, leave=False):
+    bar = progress_bar(total=frames, desc=f'simulate {subject_name}', unit='frame', disable=not progress)
+    for f in range(frames):
         rotations, origins = transforms[f, :, :3, :3], transforms[f, :, :3, 3]
         meshes = [(v @ rotations[b].T + origins[b], t)
                   for (v, t), b in zip(shape_meshes, shape_bones)]
         depth = camera.render_depth(meshes + clutter_camera)
         clouds.append(camera.back_project(noise.apply(depth, rng)))
         surface[f] = np.einsum('sij,sj->si', rotations[sample_bones], local_samples) + origins[sample_bones]
+        bar.update()
 
+    bar.close()
     joint_bones = np.array([b for b, bone in enumerate(subject.bones) if bone.parent >= 0])
     joint_of_bone = {int(b): j for j, b in enumerate(joint_bones)}
     joint_parents = np.array([joint_of_bone.get(int(subject.bones[b].parent), -1)

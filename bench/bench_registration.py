@@ -1,0 +1,177 @@
+#!/usr/bin/env python3
+"""Registration benchmark: this method vs Coherent Point Drift vs not moving at all.
+
+    python bench/bench_registration.py [--frames 90] [--sequences human,hand,fish,samba]
+                                       [--methods ours,ours_per_node,rustcpd,pycpd,static]
+
+Every method sees the same preprocessed frames and starts from the same rest set (our
+rest pose of frame 0). CPD runs frame to frame (Y_t = CPD(V_t, Y_{t-1})). Each method runs
+in its own process so its peak memory (max RSS) is its own. Needs the `bench` extra:
+pip install -e .[bench]. Prints a Markdown table; `--json FILE` keeps the raw numbers.
+
+The real captured samba sequence (../shared/data/samba_mesh_sequence.npz, Vlasic et al.
+2008) is rendered through the same virtual Kinect; its true vertex motion is the ground
+truth. It is skipped when the file is absent.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from skel_extract_ros.core.preprocess import Preprocessor  # noqa: E402
+from skel_extract_ros.core.registration import NonRigidRegistration, RegistrationParams  # noqa: E402
+from skel_extract_ros.core.rest_pose import RestPose  # noqa: E402
+from skel_extract_ros.evaluation import GroundTruth, evaluate_registration  # noqa: E402
+from skel_extract_ros.sim import DepthCamera, Intrinsics, NoiseModel, generate_sequence  # noqa: E402
+from skel_extract_ros.sim.camera import look_at  # noqa: E402
+
+SAMBA = Path(os.environ.get('SKEL_SAMBA', REPO.parent / 'shared' / 'data' / 'samba_mesh_sequence.npz'))
+METHODS = ('ours', 'ours_per_node', 'rustcpd', 'pycpd', 'static')
+
+
+def render_samba(frames: int, seed: int = 0):
+    """The samba mesh sequence through the virtual 320x240 Kinect, performer facing it."""
+    data = np.load(SAMBA)
+    vertices = data['vertices'][:frames].astype(np.float64)
+    faces = data['faces']
+    # y is up and the performer faces +x (toes point that way): camera 2.5 m out on +x.
+    centre = vertices[0].mean(axis=0)
+    target = np.array([centre[0], 0.95, centre[2]])
+    camera_from_world = np.linalg.inv(look_at(target + [2.5, 0.1, 0.0], target))
+    in_camera = vertices @ camera_from_world[:3, :3].T + camera_from_world[:3, 3]
+    camera = DepthCamera(Intrinsics.from_resolution('320x240'))
+    noise = NoiseModel.kinect()
+    rng = np.random.default_rng(seed)
+    clouds = [camera.back_project(noise.apply(camera.render_depth([(v, faces)]), rng)) for v in in_camera]
+    stamps = np.arange(len(clouds)) / float(data['fps'])
+    gt = GroundTruth(stamps, np.zeros((len(clouds), 0, 3)), [], np.zeros(0), in_camera, 1.8,
+                     surface_faces=faces)
+    return clouds, gt
+
+
+def simulated(subject: str, frames: int):
+    seq = generate_sequence(subject, frames, seed=1, progress=False)
+    g = seq.ground_truth
+    gt = GroundTruth(g['stamps'], g['joints'], list(g['joint_names']), g['joint_parents'], g['surface_points'],
+                     float(g['subject_scale_m']), g['surface_bone_ids'], g['bone_transforms'])
+    return seq.clouds, gt
+
+
+def prepare(name: str, frames: int, cache: Path):
+    clouds, gt = render_samba(frames) if name == 'samba' else simulated(name, frames)
+    preprocess = Preprocessor()
+    observed = [preprocess(c.reshape(-1, 3)) for c in clouds]
+    rest = RestPose.from_points(observed[0]).points
+    np.savez(cache / f'{name}.npz', rest=rest, offsets=np.cumsum([0] + [len(o) for o in observed]),
+             observed=np.concatenate(observed))
+    return gt, int(np.median([len(o) for o in observed]))
+
+
+def worker(name: str, method: str, cache: Path) -> None:
+    """Runs in a child process: registers the cached sequence, writes points and timings."""
+    data = np.load(cache / f'{name}.npz')
+    rest, offsets, observed = data['rest'], data['offsets'], data['observed']
+    frames = [observed[a:b] for a, b in zip(offsets[:-1], offsets[1:])]
+    registered, times = [], []
+    if method in ('ours', 'ours_per_node'):
+        params = RegistrationParams(m_step='per_node' if method == 'ours_per_node' else 'translations_rotations')
+        registration = NonRigidRegistration(rest, params)
+        for frame in frames:
+            started = time.perf_counter()
+            registered.append(registration.register_frame(frame).points)
+            times.append(time.perf_counter() - started)
+    elif method == 'static':
+        registered = [rest] * len(frames)
+        times = [0.0] * len(frames)
+    elif method == 'rustcpd':
+        import rustcpd
+        current = rest
+        for frame in frames:
+            started = time.perf_counter()
+            # standard CPD settings (alpha = beta = 2 on normalised data); rustcpd's default
+            # rank-300 kernel approximation
+            current = np.asarray(rustcpd.register_deformable(frame, current, normalize=True).points)
+            times.append(time.perf_counter() - started)
+            registered.append(current)
+    elif method == 'pycpd':
+        from pycpd import DeformableRegistration
+        current = rest
+        for frame in frames:
+            started = time.perf_counter()
+            # pycpd does not normalise: do what CPD prescribes, then map back. Its tolerance
+            # is absolute on sigma2 (normalised units), so keep it small.
+            centre, scale = frame.mean(axis=0), frame.std()
+            fit = DeformableRegistration(X=(frame - centre) / scale, Y=(current - centre) / scale,
+                                         alpha=2.0, beta=2.0, tolerance=1e-6, max_iterations=100)
+            moved, _ = fit.register()
+            current = moved * scale + centre
+            times.append(time.perf_counter() - started)
+            registered.append(current)
+    np.savez(cache / f'{name}_{method}_out.npz', points=np.array(registered), times=np.array(times))
+
+
+def run_method(name: str, method: str, cache: Path):
+    process = subprocess.Popen([sys.executable, __file__, '--worker', name, method, str(cache)])
+    _, status, usage = os.wait4(process.pid, 0)
+    if status != 0:
+        raise RuntimeError(f'{method} on {name} failed (status {status})')
+    out = np.load(cache / f'{name}_{method}_out.npz')
+    return out['points'], out['times'], usage.ru_maxrss / 1024.0  # MiB
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument('--frames', type=int, default=90)
+    parser.add_argument('--sequences', default='human,hand,fish,samba')
+    parser.add_argument('--methods', default=','.join(METHODS))
+    parser.add_argument('--json', default=None, help='write the raw results here')
+    parser.add_argument('--worker', nargs=3, help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.worker:
+        worker(args.worker[0], args.worker[1], Path(args.worker[2]))
+        return 0
+    methods = args.methods.split(',')
+    unknown = set(methods) - set(METHODS)
+    if unknown:
+        parser.error(f'unknown method(s) {", ".join(sorted(unknown))}')
+    rows = []
+    print('| sequence | points/frame | method | mean (cm) | p95 (cm) | drift @30 / @60 / @90 (cm) '
+          '| median ms/frame | peak memory (MiB) |')
+    print('|---|---|---|---|---|---|---|---|')
+    with tempfile.TemporaryDirectory() as tmp:
+        cache = Path(tmp)
+        for name in args.sequences.split(','):
+            if name == 'samba' and not SAMBA.is_file():
+                print(f'(samba skipped: {SAMBA} not found)', file=sys.stderr)
+                continue
+            gt, points_per_frame = prepare(name, args.frames, cache)
+            for method in methods:
+                registered, times, memory = run_method(name, method, cache)
+                result = evaluate_registration(registered, gt.stamps[:len(registered)], gt)
+                drift = ' / '.join(f'{100 * result["drift_m"][k]:.1f}' for k in ('30', '60', '90')
+                                   if k in result['drift_m'])
+                row = {'sequence': name, 'method': method, 'points_per_frame': points_per_frame,
+                       'mean_cm': 100 * result['mean_error_m'], 'p95_cm': 100 * result['p95_error_m'],
+                       'drift_cm': {k: 100 * v for k, v in result['drift_m'].items()},
+                       'median_ms': 1000 * float(np.median(times)), 'peak_mib': memory}
+                rows.append(row)
+                print(f'| {name} | {points_per_frame} | {method} | {row["mean_cm"]:.2f} | {row["p95_cm"]:.2f} | '
+                      f'{drift} | {row["median_ms"]:.0f} | {memory:.0f} |', flush=True)
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=2))
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

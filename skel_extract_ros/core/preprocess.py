@@ -1,0 +1,113 @@
+"""Per-frame cleaning of depth point clouds: raw (N, 3) points in, subject points out.
+
+Steps, in order, each switchable: drop NaN/inf; crop box; voxel downsampling to about
+`target_points` (the voxel size adapts from frame to frame); removal of the dominant plane
+(floor, table); keep the largest Euclidean cluster; statistical outlier removal.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import open3d as o3d
+
+
+class PreprocessError(ValueError):
+    """Input that cannot be preprocessed; the message says why in one line."""
+
+
+@dataclass
+class PreprocessParams:
+    """Preprocessing parameters (metres).
+
+    crop_min, crop_max: optional axis-aligned crop box in the cloud frame (None = no crop).
+    target_points: voxel downsampling aims at about this many points (0 = no downsampling).
+    initial_voxel_size: first guess of the voxel size; later frames reuse the last size.
+    max_input_points: clouds larger than this are randomly thinned first, so a runaway
+        driver setting (a million points) costs bounded time.
+    remove_plane: remove the largest plane if it holds at least `plane_min_fraction` of
+        the points (floor, wall, table); plane_distance is the RANSAC inlier distance.
+    keep_largest_cluster: keep only the largest DBSCAN cluster (eps `cluster_eps`).
+    outlier_neighbours, outlier_std_ratio: statistical outlier removal (0 neighbours = off).
+    """
+
+    crop_min: tuple | None = None
+    crop_max: tuple | None = None
+    target_points: int = 5000
+    initial_voxel_size: float = 0.01
+    max_input_points: int = 400_000
+    remove_plane: bool = False
+    plane_distance: float = 0.02
+    plane_min_fraction: float = 0.2
+    keep_largest_cluster: bool = False
+    cluster_eps: float = 0.05
+    cluster_min_points: int = 10
+    outlier_neighbours: int = 16
+    outlier_std_ratio: float = 2.0
+    seed: int = 0
+
+
+class Preprocessor:
+    """Stateful per-frame preprocessing (keeps the adapted voxel size between frames)."""
+
+    def __init__(self, params: PreprocessParams | None = None):
+        self.params = params or PreprocessParams()
+        self.voxel_size = self.params.initial_voxel_size
+        self._rng = np.random.default_rng(self.params.seed)
+
+    def __call__(self, points: np.ndarray) -> np.ndarray:
+        """(N, 3) raw points (NaN allowed) -> (K, 3) float64 clean points; K may be 0."""
+        p = self.params
+        points = np.asarray(points)
+        if points.ndim != 2 or points.shape[1] != 3:
+            raise PreprocessError(f'points must be an (N, 3) array, got shape {points.shape}')
+        points = points[np.isfinite(points).all(axis=1)].astype(np.float64, copy=False)
+        if len(points) > p.max_input_points:
+            points = points[self._rng.choice(len(points), p.max_input_points, replace=False)]
+        if p.crop_min is not None or p.crop_max is not None:
+            low = np.asarray(p.crop_min if p.crop_min is not None else (-np.inf,) * 3)
+            high = np.asarray(p.crop_max if p.crop_max is not None else (np.inf,) * 3)
+            points = points[np.all((points >= low) & (points <= high), axis=1)]
+        if len(points) == 0:
+            return points.reshape(0, 3)
+        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+        if p.target_points > 0 and len(points) > p.target_points:
+            cloud = self._downsample(cloud)
+        if p.remove_plane and len(cloud.points) >= 3 * 10:
+            _, inliers = cloud.segment_plane(p.plane_distance, 3, 200, seed=p.seed) \
+                if _accepts_seed() else cloud.segment_plane(p.plane_distance, 3, 200)
+            if len(inliers) >= p.plane_min_fraction * len(cloud.points):
+                cloud = cloud.select_by_index(inliers, invert=True)
+        if p.keep_largest_cluster and len(cloud.points) > p.cluster_min_points:
+            labels = np.asarray(cloud.cluster_dbscan(p.cluster_eps, p.cluster_min_points))
+            if (labels >= 0).any():
+                largest = np.bincount(labels[labels >= 0]).argmax()
+                cloud = cloud.select_by_index(np.flatnonzero(labels == largest))
+        if p.outlier_neighbours > 0 and len(cloud.points) > p.outlier_neighbours:
+            cloud, _ = cloud.remove_statistical_outlier(p.outlier_neighbours, p.outlier_std_ratio)
+        return np.asarray(cloud.points)
+
+    def _downsample(self, cloud: o3d.geometry.PointCloud) -> o3d.geometry.PointCloud:
+        """Voxel-downsample to within 25 % of target_points, adapting the voxel size.
+
+        Points on a surface scale with 1 / voxel^2, so each retry rescales by sqrt(ratio).
+        """
+        target = self.params.target_points
+        best = None
+        for _ in range(4):
+            down = cloud.voxel_down_sample(self.voxel_size)
+            count = len(down.points)
+            best = down
+            ratio = count / target
+            if 0.8 <= ratio <= 1.25:
+                break
+            self.voxel_size = float(np.clip(self.voxel_size * np.sqrt(ratio), 1e-4, 1.0))
+        return best
+
+
+def _accepts_seed() -> bool:
+    import inspect
+    try:
+        return 'seed' in inspect.signature(o3d.geometry.PointCloud.segment_plane).parameters
+    except (TypeError, ValueError):
+        return False

@@ -1,0 +1,98 @@
+"""Registration of a whole sequence: preprocessing, rest pose, then Alg. 1 frame by frame.
+
+    >>> registration = SequenceRegistration(RegistrationParams())
+    >>> registered = registration.register(frames)      # iterable of (N_t, 3) -> (F, M, 3)
+    >>> registration.rest_pose_.points                  # (M, 3) rest points Q
+    >>> registration.statuses_                          # per frame: ok / empty / diverged
+
+Frames are consumed one at a time (a generator is fine), so memory holds the results only.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Iterable
+
+import numpy as np
+
+from .preprocess import PreprocessParams, Preprocessor
+from .registration import STATUS_EMPTY, NonRigidRegistration, RegistrationParams
+from .rest_pose import RestPose, RestPoseError, RestPoseParams
+
+
+@dataclass
+class StepTimes:
+    """Wall-clock seconds spent in each step, and per-frame registration times (s)."""
+
+    preprocess: float = 0.0
+    rest_pose: float = 0.0
+    registration: float = 0.0
+    per_frame_registration: list = field(default_factory=list)
+
+
+class SequenceRegistration:
+    """Rest pose from the first usable frame, then every frame registered from the previous.
+
+    Parameters are dataclasses (see their docstrings). Frames before the first usable one
+    get NaN points and status 'empty'. Attributes set by `register` (sklearn style):
+    rest_pose_, statuses_ (F,), sigma2_ (F,), iterations_ (F,), times_.
+    """
+
+    def __init__(self, params: RegistrationParams | None = None,
+                 rest_params: RestPoseParams | None = None,
+                 preprocess_params: PreprocessParams | None = None):
+        self.params = params or RegistrationParams()
+        self.rest_params = rest_params or RestPoseParams()
+        self.preprocess_params = preprocess_params or PreprocessParams()
+
+    def register(self, frames: Iterable[np.ndarray],
+                 on_frame: Callable[[int, str], None] | None = None) -> np.ndarray:
+        """Register raw frames ((N_t, 3) arrays, NaN allowed) -> (F, M, 3) float32 metres.
+
+        `on_frame(index, status)` is called after each frame (progress reporting).
+        """
+        preprocess = Preprocessor(self.preprocess_params)
+        self.times_ = StepTimes()
+        self.rest_pose_ = None
+        registration = None
+        points, statuses, sigma2, iterations = [], [], [], []
+        M = self.rest_params.n_points
+        for index, raw in enumerate(frames):
+            started = time.perf_counter()
+            observed = preprocess(raw)
+            self.times_.preprocess += time.perf_counter() - started
+            if registration is None:
+                if len(observed) >= max(100, M // 10):
+                    started = time.perf_counter()
+                    try:
+                        self.rest_pose_ = RestPose.from_points(observed, self.rest_params)
+                    except RestPoseError:
+                        self.rest_pose_ = None
+                    self.times_.rest_pose += time.perf_counter() - started
+                if self.rest_pose_ is None:
+                    points.append(np.full((M, 3), np.nan, dtype=np.float32))
+                    statuses.append(STATUS_EMPTY)
+                    sigma2.append(np.nan)
+                    iterations.append(0)
+                    if on_frame:
+                        on_frame(index, STATUS_EMPTY)
+                    continue
+                registration = NonRigidRegistration(self.rest_pose_.points, self.params)
+                self.registration_ = registration
+            started = time.perf_counter()
+            result = registration.register_frame(observed)
+            elapsed = time.perf_counter() - started
+            self.times_.registration += elapsed
+            self.times_.per_frame_registration.append(elapsed)
+            points.append(result.points.astype(np.float32))
+            statuses.append(result.status)
+            sigma2.append(result.sigma2)
+            iterations.append(result.iterations)
+            if on_frame:
+                on_frame(index, result.status)
+        self.statuses_ = np.array(statuses)
+        self.sigma2_ = np.array(sigma2)
+        self.iterations_ = np.array(iterations)
+        if not points:
+            return np.empty((0, M, 3), dtype=np.float32)
+        return np.stack(points)

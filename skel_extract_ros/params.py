@@ -1,0 +1,77 @@
+"""Loading parameters from params/skel_extract.yaml (ROS 2 parameter file layout).
+
+The same file configures the nodes (`<node_name>: ros__parameters:`) and `skel-extract
+run --params`. Nested mappings are the ROS dotted parameter names (`preprocess.target_points`).
+Unknown names are errors, so a typo never silently falls back to a default.
+"""
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import yaml
+
+from .core.preprocess import PreprocessParams
+from .core.registration import RegistrationParams
+from .core.rest_pose import RestPoseParams
+
+# In a source checkout; the same file is installed to share/skel_extract_ros/params/.
+# Its values equal the dataclass defaults (a test keeps them in sync), so code that gets no
+# file uses the defaults directly.
+DEFAULT_PARAMS_FILE = Path(__file__).resolve().parent.parent / 'params' / 'skel_extract.yaml'
+
+
+class ParamsError(ValueError):
+    """A parameter file that cannot be used; the message names the file and the key."""
+
+
+def _build(cls, values: dict, where: str):
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = sorted(set(values) - set(fields))
+    if unknown:
+        raise ParamsError(f'{where}: unknown parameter(s) {", ".join(unknown)}; '
+                          f'valid: {", ".join(sorted(fields))}')
+    converted = {}
+    for name, value in values.items():
+        default = fields[name].default
+        # ROS parameters cannot be None: 0 means "automatic", an empty list "unset".
+        if default is None and value in (0, 0.0, [], ''):
+            value = None
+        elif isinstance(value, list):
+            value = tuple(value)
+        elif isinstance(default, float) and isinstance(value, int) and not isinstance(value, bool):
+            value = float(value)
+        converted[name] = value
+    try:
+        return cls(**converted)
+    except (TypeError, ValueError) as error:
+        raise ParamsError(f'{where}: {error}') from error
+
+
+def registration_params_from_dict(values: dict, where: str = 'registration_node') -> tuple:
+    """(RegistrationParams, RestPoseParams, PreprocessParams) from a node's parameters."""
+    values = dict(values)
+    preprocess = values.pop('preprocess', {}) or {}
+    rest_pose = values.pop('rest_pose', {}) or {}
+    return (_build(RegistrationParams, values, where),
+            _build(RestPoseParams, rest_pose, f'{where}.rest_pose'),
+            _build(PreprocessParams, preprocess, f'{where}.preprocess'))
+
+
+def load_params_file(path) -> dict:
+    """{node name: parameter dict} from a ROS 2 parameter YAML file."""
+    path = Path(path)
+    if not path.is_file():
+        raise ParamsError(f'parameter file {path} does not exist')
+    try:
+        document = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as error:
+        raise ParamsError(f'{path} is not valid YAML: {error}') from error
+    if not isinstance(document, dict):
+        raise ParamsError(f'{path}: expected "<node_name>: ros__parameters: ..." mappings')
+    nodes = {}
+    for node, content in document.items():
+        if not isinstance(content, dict) or 'ros__parameters' not in content:
+            raise ParamsError(f'{path}: section {node!r} has no ros__parameters')
+        nodes[str(node).lstrip('/')] = content['ros__parameters'] or {}
+    return nodes
