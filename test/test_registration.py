@@ -5,8 +5,8 @@ from scipy.spatial.transform import Rotation
 
 from skel_extract_ros.core.preprocess import Preprocessor
 from skel_extract_ros.core.registration import (STATUS_DIVERGED, STATUS_EMPTY, STATUS_OK,
-                                                NonRigidRegistration, RegistrationParams,
-                                                rotations_from_h)
+                                                NonRigidRegistration, RegistrationParams)
+from skel_extract_ros.core.rigid import rotations_from_h
 from skel_extract_ros.core.rest_pose import RestPose
 from skel_extract_ros.core.sequence import SequenceRegistration
 from skel_extract_ros.evaluation import GroundTruth, evaluate_registration

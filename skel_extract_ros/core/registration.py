@@ -83,6 +83,8 @@ from scipy.sparse.linalg import spsolve
 from scipy.spatial import cKDTree
 
 from .deformation_graph import DeformationGraph
+from .gmm import GMMStatistics, gmm_posteriors
+from .rigid import rotations_from_h
 
 STATUS_OK = 'ok'
 STATUS_EMPTY = 'empty'
@@ -164,39 +166,10 @@ class FrameResult:
     energies: list = field(default_factory=list)
 
 
-@dataclass
-class _EStep:
-    """Sufficient statistics of the truncated posteriors P (never stored as a matrix).
-
-    P1: (M,) sum_i p_mi; Px: (M, 3) sum_i p_mi v_i; Np: sum of P1; nll: -log-likelihood
-    of Eq. (1); weighted_sq: sum_mi p_mi |v_i|^2.
-    """
-
-    P1: np.ndarray
-    Px: np.ndarray
-    Np: float
-    nll: float
-    weighted_sq: float
-
-    def targets(self) -> np.ndarray:
-        """(M, 3) x~_m = Px / P1 (zero where a centroid has no mass)."""
-        has_mass = self.P1 > 1e-12
-        return np.where(has_mass[:, None], self.Px / np.where(has_mass, self.P1, 1.0)[:, None], 0.0)
-
-
 def median_spacing(points: np.ndarray) -> float:
     """Median distance from each point to its nearest neighbour (m)."""
     distances, _ = cKDTree(points).query(points, k=2)
     return float(np.median(distances[:, 1]))
-
-
-def rotations_from_h(H: np.ndarray) -> np.ndarray:
-    """argmax_R tr(R H) over SO(3) for a batch of (n, 3, 3) H (Eq. 6)."""
-    U, _, Vt = np.linalg.svd(np.transpose(H, (0, 2, 1)))   # svd(H^T) = U S V^T
-    det = np.linalg.det(U @ Vt)
-    correction = np.ones((len(H), 3))
-    correction[:, 2] = np.where(det < 0, -1.0, 1.0)
-    return (U * correction[:, None, :]) @ Vt
 
 
 class NonRigidRegistration:
@@ -324,32 +297,11 @@ class NonRigidRegistration:
         return float(np.sum((predicted - g[k] - translations[k]) ** 2))
 
     # ----------------------------------------------------------------------------------
-    def _e_step(self, observed: np.ndarray, points: np.ndarray, sigma2: float) -> _EStep:
+    def _e_step(self, observed: np.ndarray, points: np.ndarray, sigma2: float) -> GMMStatistics:
         p = self.params
-        M, N = len(points), len(observed)
-        K = min(p.e_step_neighbours, M)
-        # Each observation's K nearest centroids within truncation_sigmas * sigma (a k-d tree
-        # over the M centroids, rebuilt per iteration; its cost does not grow with sigma,
-        # unlike a fixed-radius search that visits every centroid in the ball).
-        radius = p.truncation_sigmas * np.sqrt(sigma2)
-        d, idx = cKDTree(points).query(observed, k=K, distance_upper_bound=radius, workers=-1)
-        d, idx = d.reshape(N, K), idx.reshape(N, K)
-        found = idx < M
-        gauss = np.where(found, np.exp(-np.where(found, d, 0.0) ** 2 / (2.0 * sigma2)), 0.0)
-        row_sum = gauss.sum(axis=1)
-        c = (2.0 * np.pi * sigma2) ** 1.5 * p.omega * M / ((1.0 - p.omega) * N)
-        posteriors = gauss / (row_sum + c)[:, None]
-        flat = np.where(found, idx, M).ravel()
-        weights = posteriors.ravel()
-        P1 = np.bincount(flat, weights=weights, minlength=M + 1)[:M]
-        Px = np.stack([np.bincount(flat, weights=(posteriors * observed[:, axis:axis + 1]).ravel(),
-                                   minlength=M + 1)[:M] for axis in range(3)], axis=1)
-        likelihood = (1.0 - p.omega) / M * (2.0 * np.pi * sigma2) ** -1.5 * row_sum + p.omega / N
-        nll = float(-np.sum(np.log(likelihood)))
-        weighted_sq = float(np.sum(posteriors.sum(axis=1) * np.sum(observed ** 2, axis=1)))
-        return _EStep(P1, Px, float(P1.sum()), nll, weighted_sq)
+        return gmm_posteriors(observed, points, sigma2, p.omega, p.e_step_neighbours, p.truncation_sigmas)
 
-    def _solve_translations(self, estep: _EStep, sigma2: float, rotations: np.ndarray,
+    def _solve_translations(self, estep: GMMStatistics, sigma2: float, rotations: np.ndarray,
                             translations: np.ndarray) -> None:
         """Exact minimisation of E over all node translations at once (in place)."""
         p = self.params
@@ -371,7 +323,7 @@ class NonRigidRegistration:
             - p.beta_smooth * (self._incidence.T @ c) + p.beta_small * translations
         translations[:] = spsolve(system, rhs).reshape(-1, 3)
 
-    def _update_rotations(self, estep: _EStep, sigma2: float, contributions: np.ndarray,
+    def _update_rotations(self, estep: GMMStatistics, sigma2: float, contributions: np.ndarray,
                           rotations: np.ndarray, translations: np.ndarray) -> None:
         """All rotations at once from the separable majoriser (module docstring), in place."""
         p = self.params
@@ -395,7 +347,7 @@ class NonRigidRegistration:
         H = H.reshape(-1, 3, 3) + p.beta_small * np.transpose(rotations, (0, 2, 1))
         rotations[:] = rotations_from_h(H)
 
-    def _update_nodes(self, estep: _EStep, sigma2: float, contributions: np.ndarray,
+    def _update_nodes(self, estep: GMMStatistics, sigma2: float, contributions: np.ndarray,
                       rotations: np.ndarray, translations: np.ndarray) -> None:
         """The paper's M-step: one sweep of joint per-node (R, T) updates (Eq. 5, 6), colour
         by colour (independent nodes together), in place."""
@@ -469,10 +421,8 @@ class NonRigidRegistration:
             else:
                 self._update_nodes(estep, sigma2, contributions, rotations, translations)
             points = contributions.sum(axis=1)
-            # Eq. (7) from the sufficient statistics: sum_mi p_mi |v_i - y'_m|^2 / (3 N_p)
-            residual = estep.weighted_sq - 2.0 * np.sum(estep.Px * points) \
-                + np.sum(estep.P1 * np.sum(points ** 2, axis=1))
-            sigma2 = max(residual / (3.0 * estep.Np), p.min_sigma2)
+            # Eq. (7): sum_mi p_mi |v_i - y'_m|^2 / (3 N_p)
+            sigma2 = max(estep.squared_residual(points) / (3.0 * estep.Np), p.min_sigma2)
             if sigma2 > p.max_sigma2:
                 break
 

@@ -1,0 +1,68 @@
+"""Truncated GMM E-step shared by registration (Eq. 3) and joint estimation (Eq. 11).
+
+The observed points V (N, 3) come from a GMM with centroids X (M, 3), one variance sigma2,
+equal priors 1/M and a uniform outlier component of weight omega and density 1/N:
+
+    p_mi = exp(-|v_i - x_m|^2 / 2 sigma2) / (sum_m' exp(...) + c),
+    c    = (2 pi sigma2)^{3/2} omega M / ((1 - omega) N).
+
+Each observation keeps only its `n_neighbours` nearest centroids within
+`truncation_sigmas` * sigma (k-d tree over the centroids), so no N x M matrix is formed;
+what the M-steps need are the sufficient statistics below.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+
+@dataclass
+class GMMStatistics:
+    """Sufficient statistics of the posteriors.
+
+    P1: (M,) sum_i p_mi; Px: (M, 3) sum_i p_mi v_i (m); Np: sum of P1; nll: -log-likelihood
+    of the observations; weighted_sq: sum_mi p_mi |v_i|^2 (m^2).
+    """
+
+    P1: np.ndarray
+    Px: np.ndarray
+    Np: float
+    nll: float
+    weighted_sq: float
+
+    def targets(self) -> np.ndarray:
+        """(M, 3) x~_m = Px / P1, the posterior-weighted mean observation (0 without mass)."""
+        has_mass = self.P1 > 1e-12
+        return np.where(has_mass[:, None], self.Px / np.where(has_mass, self.P1, 1.0)[:, None], 0.0)
+
+    def squared_residual(self, centroids: np.ndarray) -> float:
+        """sum_mi p_mi |v_i - x_m|^2 for new centroids (M, 3), from the statistics alone."""
+        return float(self.weighted_sq - 2.0 * np.sum(self.Px * centroids)
+                     + np.sum(self.P1 * np.sum(centroids ** 2, axis=1)))
+
+
+def gmm_posteriors(observed: np.ndarray, centroids: np.ndarray, sigma2: float, omega: float,
+                   n_neighbours: int = 8, truncation_sigmas: float = 4.0) -> GMMStatistics:
+    """E-step: observed (N, 3), centroids (M, 3), sigma2 (m^2) -> GMMStatistics."""
+    M, N = len(centroids), len(observed)
+    K = min(n_neighbours, M)
+    # The k-d tree is over the centroids and rebuilt per call; its query cost does not grow
+    # with sigma, unlike a fixed-radius search that visits every centroid in the ball.
+    radius = truncation_sigmas * np.sqrt(sigma2)
+    d, idx = cKDTree(centroids).query(observed, k=K, distance_upper_bound=radius, workers=-1)
+    d, idx = d.reshape(N, K), idx.reshape(N, K)
+    found = idx < M
+    gauss = np.where(found, np.exp(-np.where(found, d, 0.0) ** 2 / (2.0 * sigma2)), 0.0)
+    row_sum = gauss.sum(axis=1)
+    c = (2.0 * np.pi * sigma2) ** 1.5 * omega * M / ((1.0 - omega) * N)
+    posteriors = gauss / (row_sum + c)[:, None]
+    flat = np.where(found, idx, M).ravel()
+    P1 = np.bincount(flat, weights=posteriors.ravel(), minlength=M + 1)[:M]
+    Px = np.stack([np.bincount(flat, weights=(posteriors * observed[:, axis:axis + 1]).ravel(),
+                               minlength=M + 1)[:M] for axis in range(3)], axis=1)
+    likelihood = (1.0 - omega) / M * (2.0 * np.pi * sigma2) ** -1.5 * row_sum + omega / N
+    nll = float(-np.sum(np.log(likelihood)))
+    weighted_sq = float(np.sum(posteriors.sum(axis=1) * np.sum(observed ** 2, axis=1)))
+    return GMMStatistics(P1, Px, float(P1.sum()), nll, weighted_sq)

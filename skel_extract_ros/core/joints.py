@@ -1,0 +1,279 @@
+r"""Skeleton joint estimation (paper Sec. 6, Alg. 2): LBS fitted to raw and registered points.
+
+The LBS-deformed rest points x_m^t = sum_j w_mj (R_j^t q_m + T_j^t) (Eq. 8) are the
+centroids of a GMM for the preprocessed points V^t of every frame, with per-frame variance
+tau^t and outlier weight omega' (Eq. 11). EM minimises (Eq. 12)
+    E_Total = E_GMM + zeta/2 E_Register + alpha/2 E_Joint + gamma/2 sum_t E_small^t
+    E_Register = sum_t sum_m |y_m^t - x_m^t|^2
+    E_Joint    = eta sum_<j,k> |c_jk - c~_jk|^2 + sum_t sum_<j,k> |(R_j^t c_jk + T_j^t) - (R_k^t c_jk + T_k^t)|^2
+subject to w_mj >= 0, sum_j w_mj = 1, at most 4 non-zero weights per point (12b), and
+R_j^t in SO(3) (12c). alpha starts at zeta * M and grows by `alpha_growth` per iteration.
+
+M-step blocks, each solved exactly:
+- Weights, point by point: with a_m^t = P1_m^t / tau^t, x~ the posterior mean of the
+  observations and p_mj^t = R_j^t q_m + T_j^t,
+      E(w_m) = sum_t (a + zeta)/2 |z_m^t - sum_j w_mj p_mj^t|^2 + const,
+      z_m^t = (a x~_m^t + zeta y_m^t) / (a + zeta).
+  The 4 bones with the smallest single-bone objective are kept and the quadratic
+  programme over the simplex is solved exactly: for each of the 15 supports the KKT system
+  with the sum-to-one constraint is solved (vectorised over points) and the best feasible
+  support is taken.
+- Bone transforms, bone by bone (Eq. 13-15), all frames at once: every term has the form
+  lambda |R a + T - b|^2 (registration: lambda = zeta w^2, b = (y - u)/w; data: lambda =
+  P1 w^2 / tau, b = (x~ - u)/w; joints: lambda = alpha, a = c_jk, b = R_k c_jk + T_k;
+  E_small: lambda = gamma, a = 0, b = T^pre), u being the other bones' part, so T = mu_b -
+  R mu_a (Eq. 14) and R maximises tr(R Z) with Z = sum lambda (a - mu_a)(b - mu_b)^T +
+  gamma R^pre^T (Eq. 15, SVD with the det correction).
+- Joints c_jk: minimise E_Joint, a 3 x 3 solve each (see structure.solve_joints).
+- tau^t as Eq. (7); x^t by Eq. (8).
+"""
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .gmm import gmm_posteriors
+from .rigid import rotations_from_h
+from .structure import SkeletalStructure, joint_trajectories, solve_joints
+
+
+@dataclass
+class JointParams:
+    """Parameters of Alg. 2 (defaults: the paper's Table 1 and Sec. 7).
+
+    omega: outlier weight omega' (Eq. 11); eta: joint data weight; zeta: weight of
+    E_Register; gamma: weight of E_small; alpha_growth: alpha = zeta * M * growth^iteration;
+    initial_tau: tau^t at the start (m^2); max_iterations, tolerance: EM stopping;
+    max_influences: bones per point (Eq. 12b); e_step_neighbours, truncation_sigmas: the
+    truncated E-step (see core.gmm); min_tau: floor on tau (m^2).
+    """
+
+    omega: float = 0.01
+    eta: float = 1.0
+    zeta: float = 1e4
+    gamma: float = 0.1
+    alpha_growth: float = 1.45
+    initial_tau: float = 6e-4
+    max_iterations: int = 20
+    tolerance: float = 1e-3
+    max_influences: int = 4
+    e_step_neighbours: int = 8
+    truncation_sigmas: float = 4.0
+    min_tau: float = 1e-6
+
+
+@dataclass
+class JointEstimate:
+    """Result of Alg. 2.
+
+    influences: (M, 4) bone indices and weights: (M, 4) LBS weights (rows sum to 1);
+    rotations (F, B, 3, 3), translations (F, B, 3); joints (B, 3) rest-frame joint of each
+    bone with its parent (root: its centre); parents (B,); tau (F,) m^2.
+    """
+
+    influences: np.ndarray
+    weights: np.ndarray
+    rotations: np.ndarray
+    translations: np.ndarray
+    joints: np.ndarray
+    parents: np.ndarray
+    tau: np.ndarray
+    energies: list = field(default_factory=list)
+
+    def joint_trajectories(self) -> np.ndarray:
+        """(F, B, 3) joint positions per frame (metres)."""
+        return joint_trajectories(self.rotations, self.translations, self.joints, self.parents)
+
+    def dense_weights(self) -> np.ndarray:
+        """(M, B) weight matrix W."""
+        dense = np.zeros((len(self.weights), len(self.parents)))
+        np.add.at(dense, (np.arange(len(self.weights))[:, None], self.influences), self.weights)
+        return dense
+
+
+_SUPPORTS = {k: [s for r in range(1, k + 1) for s in itertools.combinations(range(k), r)] for k in range(1, 5)}
+
+
+def simplex_least_squares(G: np.ndarray, h: np.ndarray) -> np.ndarray:
+    """argmin_w 1/2 w^T G w - h^T w s.t. w >= 0, sum w = 1, for a batch (P, k, k), (P, k).
+
+    Exact: enumerates every support, solves its KKT system with the equality constraint
+    and keeps the feasible one with the lowest objective (k <= 4: at most 15 supports).
+    """
+    P, k = h.shape
+    ridge = 1e-12 * np.maximum(np.trace(G, axis1=1, axis2=2), 1e-30)[:, None, None] * np.eye(k)
+    G = G + ridge
+    best = np.full(P, np.inf)
+    result = np.zeros((P, k))
+    for support in _SUPPORTS[k]:
+        s = len(support)
+        idx = np.array(support)
+        kkt = np.zeros((P, s + 1, s + 1))
+        kkt[:, :s, :s] = G[:, idx[:, None], idx[None, :]]
+        kkt[:, :s, s] = 1.0
+        kkt[:, s, :s] = 1.0
+        rhs = np.concatenate([h[:, idx], np.ones((P, 1))], axis=1)
+        try:
+            solution = np.linalg.solve(kkt, rhs[..., None])[..., 0]
+        except np.linalg.LinAlgError:
+            solution = np.stack([np.linalg.lstsq(a, b, rcond=None)[0] for a, b in zip(kkt, rhs)])
+        w = np.zeros((P, k))
+        w[:, idx] = solution[:, :s]
+        feasible = (w >= -1e-10).all(axis=1) & np.isfinite(w).all(axis=1)
+        w = np.clip(w, 0.0, None)
+        w /= np.maximum(w.sum(axis=1, keepdims=True), 1e-300)
+        value = 0.5 * np.einsum('pi,pij,pj->p', w, G, w) - np.einsum('pi,pi->p', h, w)
+        better = feasible & (value < best)
+        best[better] = value[better]
+        result[better] = w[better]
+    return result
+
+
+class JointEstimation:
+    """Alg. 2 on a window: `fit(rest, registered, observed, structure) -> JointEstimate`."""
+
+    def __init__(self, params: JointParams | None = None):
+        self.params = params or JointParams()
+
+    def fit(self, rest: np.ndarray, registered: np.ndarray, observed: list,
+            structure: SkeletalStructure) -> JointEstimate:
+        """rest (M, 3); registered (F, M, 3); observed: F arrays (N_t, 3) of preprocessed
+        points (metres); structure from Step 2 (labels, tree, transforms, joints)."""
+        p = self.params
+        rest = np.asarray(rest, dtype=np.float64)
+        registered = np.asarray(registered, dtype=np.float64)
+        F, M, _ = registered.shape
+        if len(observed) != F:
+            raise ValueError(f'{len(observed)} observed frames for {F} registered frames')
+        parents = structure.parents
+        B = len(parents)
+        k = min(p.max_influences, B)
+        rotations = structure.rotations.astype(np.float64).copy()
+        translations = structure.translations.astype(np.float64).copy()
+        joints = structure.joints.copy()
+        anchors = structure.boundary_centroids
+        # initial weights: the hard labels of Step 2
+        influences = np.repeat(structure.labels[:, None], k, axis=1)
+        weights = np.zeros((M, k))
+        weights[:, 0] = 1.0
+        if k > 1:  # fill the other slots with distinct bones at weight 0
+            others = np.argsort(np.abs(np.arange(B)[None, :] - structure.labels[:, None]), axis=1)[:, 1:k]
+            influences[:, 1:] = others
+        tau = np.full(F, p.initial_tau)
+        observed = [np.asarray(v, dtype=np.float64) for v in observed]
+        alpha = p.zeta * M
+        edges = [(int(b), int(parents[b])) for b in range(B) if parents[b] >= 0]
+        energies = []
+        for _ in range(p.max_iterations):
+            deformed = self._deform(rest, rotations, translations, influences, weights)
+            stats = [gmm_posteriors(v, x, t, p.omega, p.e_step_neighbours, p.truncation_sigmas)
+                     if len(v) else None for v, x, t in zip(observed, deformed, tau)]
+            P1 = np.stack([s.P1 if s else np.zeros(M) for s in stats])              # (F, M)
+            targets = np.stack([s.targets() if s else np.zeros((M, 3)) for s in stats])
+            energy = sum(s.nll for s in stats if s) \
+                + 0.5 * p.zeta * np.sum((registered - deformed) ** 2) \
+                + 0.5 * alpha * self._joint_energy(rotations, translations, joints, anchors, edges)
+            energies.append(float(energy))
+            if len(energies) > 1 and abs(energies[-2] - energies[-1]) <= p.tolerance * abs(energies[-1]):
+                break
+            a = P1 / tau[:, None]                                                    # (F, M)
+            influences, weights = self._update_weights(rest, registered, targets, a, rotations, translations, k)
+            self._update_bones(rest, registered, targets, a, rotations, translations, influences, weights,
+                               joints, edges, alpha)
+            joints = solve_joints(rotations, translations, parents, anchors, p.eta)
+            deformed = self._deform(rest, rotations, translations, influences, weights)
+            tau = np.array([max(s.squared_residual(x) / (3.0 * max(s.Np, 1e-12)), p.min_tau) if s else t
+                            for s, x, t in zip(stats, deformed, tau)])
+            alpha *= p.alpha_growth
+        return JointEstimate(influences, weights, rotations, translations, joints, parents, tau, energies)
+
+    # ------------------------------------------------------------------------------------
+    @staticmethod
+    def _deform(rest, rotations, translations, influences, weights) -> np.ndarray:
+        """Eq. (8): (F, M, 3) LBS positions."""
+        positions = np.einsum('fmkij,mj->fmki', rotations[:, influences], rest) + translations[:, influences]
+        return np.einsum('mk,fmki->fmi', weights, positions)
+
+    @staticmethod
+    def _joint_energy(rotations, translations, joints, anchors, edges) -> float:
+        """E_Joint/eta-weighted data part excluded: the sum over frames and edges, plus eta
+        times the data term with eta folded in by the caller's parameters (eta = 1)."""
+        if not edges:
+            return 0.0
+        child = np.array([e[0] for e in edges])
+        parent = np.array([e[1] for e in edges])
+        c = joints[child]
+        gap = (np.einsum('feij,ej->fei', rotations[:, child], c) + translations[:, child]
+               - np.einsum('feij,ej->fei', rotations[:, parent], c) - translations[:, parent])
+        return float(np.sum(gap ** 2) + np.sum((c - anchors[child]) ** 2))
+
+    def _update_weights(self, rest, registered, targets, a, rotations, translations, k):
+        """Per point: the k bones with the smallest single-bone objective, then the exact
+        simplex-constrained least squares on them."""
+        zeta = self.params.zeta
+        F, M, _ = registered.shape
+        c = a + zeta                                                                  # (F, M)
+        z = (a[..., None] * targets + zeta * registered) / c[..., None]               # (F, M, 3)
+        B = rotations.shape[1]
+        single = np.zeros((M, B))
+        for t in range(F):  # loop over frames, vectorised over points and bones
+            positions = np.einsum('bij,mj->mbi', rotations[t], rest) + translations[t]
+            single += c[t][:, None] * np.sum((z[t][:, None, :] - positions) ** 2, axis=2)
+        influences = np.argsort(single, axis=1)[:, :k]
+        G = np.zeros((M, k, k))
+        h = np.zeros((M, k))
+        for t in range(F):
+            positions = np.einsum('mkij,mj->mki', rotations[t][influences], rest) + translations[t][influences]
+            G += c[t][:, None, None] * np.einsum('mai,mbi->mab', positions, positions)
+            h += c[t][:, None] * np.einsum('mai,mi->ma', positions, z[t])
+        return influences, simplex_least_squares(G, h)
+
+    def _update_bones(self, rest, registered, targets, a, rotations, translations, influences, weights,
+                      joints, edges, alpha) -> None:
+        """Eq. (13)-(15), bone after bone, every frame at once (in place)."""
+        p = self.params
+        F, M, _ = registered.shape
+        B = rotations.shape[1]
+        neighbours = {b: [] for b in range(B)}
+        for child, parent in edges:
+            neighbours[child].append((parent, child))   # joint stored on the child bone
+            neighbours[parent].append((child, child))
+        contributions = weights[None, :, :, None] * (
+            np.einsum('fmkij,mj->fmki', rotations[:, influences], rest) + translations[:, influences])
+        deformed = contributions.sum(axis=2)                                          # (F, M, 3)
+        for bone in range(B):  # loop over bones (a few dozen), vectorised over frames and points
+            m, slot = np.nonzero((influences == bone) & (weights > 1e-8))
+            w = weights[m, slot]
+            others = deformed[:, m] - contributions[:, m, slot]                       # (F, P, 3)
+            a_points = np.broadcast_to(rest[m], (F, len(m), 3))
+            b_register = (registered[:, m] - others) / w[None, :, None]
+            b_data = (targets[:, m] - others) / w[None, :, None]
+            lam_register = np.broadcast_to(p.zeta * w ** 2, (F, len(m)))
+            lam_data = a[:, m] * w[None, :] ** 2
+            a_terms = [a_points, a_points]
+            b_terms = [b_register, b_data]
+            lam_terms = [lam_register, lam_data]
+            for other, joint_bone in neighbours[bone]:
+                c = joints[joint_bone]
+                a_terms.append(np.broadcast_to(c, (F, 1, 3)))
+                b_terms.append((np.einsum('fij,j->fi', rotations[:, other], c) + translations[:, other])[:, None, :])
+                lam_terms.append(np.full((F, 1), alpha))
+            a_terms.append(np.zeros((F, 1, 3)))
+            b_terms.append(translations[:, bone][:, None, :])
+            lam_terms.append(np.full((F, 1), p.gamma))
+            A = np.concatenate(a_terms, axis=1)
+            Bv = np.concatenate(b_terms, axis=1)
+            lam = np.concatenate(lam_terms, axis=1)
+            total = lam.sum(axis=1)
+            mu_a = np.einsum('fp,fpi->fi', lam, A) / total[:, None]
+            mu_b = np.einsum('fp,fpi->fi', lam, Bv) / total[:, None]
+            Z = np.einsum('fp,fpi,fpj->fij', lam, A - mu_a[:, None], Bv - mu_b[:, None])
+            Z += p.gamma * np.transpose(rotations[:, bone], (0, 2, 1))
+            R = rotations_from_h(Z)
+            rotations[:, bone] = R
+            translations[:, bone] = mu_b - np.einsum('fij,fj->fi', R, mu_a)
+            new = w[None, :, None] * (np.einsum('fij,pj->fpi', R, rest[m]) + translations[:, bone][:, None, :])
+            contributions[:, m, slot] = new
+            deformed[:, np.unique(m)] = contributions[:, np.unique(m)].sum(axis=2)

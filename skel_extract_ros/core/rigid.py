@@ -1,0 +1,49 @@
+"""Closed-form rotations over SO(3) and batched rigid fits (Kabsch with det correction)."""
+from __future__ import annotations
+
+import numpy as np
+from scipy import sparse
+
+
+def rotations_from_h(H: np.ndarray) -> np.ndarray:
+    """argmax_R tr(R H) over SO(3) for a batch (..., 3, 3) of H (paper Eq. 6 and 15).
+
+    U S V^T = svd(H^T), R = U diag(1, 1, det(U V^T)) V^T (Myronenko and Song 2009).
+    """
+    shape = H.shape
+    H = H.reshape(-1, 3, 3)
+    U, _, Vt = np.linalg.svd(np.transpose(H, (0, 2, 1)))
+    det = np.linalg.det(U @ Vt)
+    correction = np.ones((len(H), 3))
+    correction[:, 2] = np.where(det < 0, -1.0, 1.0)
+    return ((U * correction[:, None, :]) @ Vt).reshape(shape)
+
+
+def segment_matrix(labels: np.ndarray, n_segments: int) -> sparse.csr_matrix:
+    """(S, M) one-hot matrix: row s sums the points labelled s."""
+    M = len(labels)
+    return sparse.csr_matrix((np.ones(M), (labels, np.arange(M))), shape=(n_segments, M))
+
+
+def fit_rigid_segments(rest: np.ndarray, frames: np.ndarray, labels: np.ndarray, n_segments: int):
+    """Eq. (9) for every segment and frame: argmin sum_{m in s} |y_m^t - (R q_m + T)|^2.
+
+    rest: (M, 3) rest points q; frames: (F, M, 3) registered points y; labels: (M,) in
+    [0, n_segments). Returns rotations (F, S, 3, 3) and translations (F, S, 3). Segments
+    without points get the identity.
+    """
+    F, M, _ = frames.shape
+    summer = segment_matrix(labels, n_segments)
+    counts = np.asarray(summer.sum(axis=1)).ravel()
+    safe = np.maximum(counts, 1.0)
+    rest_centres = (summer @ rest) / safe[:, None]                                # (S, 3)
+    frame_centres = (summer @ frames.transpose(1, 0, 2).reshape(M, -1)).reshape(n_segments, F, 3)
+    frame_centres = frame_centres.transpose(1, 0, 2) / safe[None, :, None]        # (F, S, 3)
+    # sum_m q_m y_m^T per segment and frame, then centred
+    outer = rest[:, None, :, None] * frames.transpose(1, 0, 2)[:, :, None, :]      # (M, F, 3, 3)
+    H = (summer @ outer.reshape(M, -1)).reshape(n_segments, F, 3, 3).transpose(1, 0, 2, 3)
+    H -= counts[None, :, None, None] * rest_centres[None, :, :, None] * frame_centres[:, :, None, :]
+    rotations = rotations_from_h(H)
+    rotations[:, counts == 0] = np.eye(3)
+    translations = frame_centres - np.einsum('fsij,sj->fsi', rotations, rest_centres)
+    return rotations, translations

@@ -1,0 +1,302 @@
+"""Skeletal structure extraction (paper Sec. 5): motion clusters -> bones -> bone tree.
+
+1. K-means on the rest points (on their whole registered trajectories by default, or on
+   rest positions), K deliberately larger than the number of bones.
+2. `n_rounds` rounds of (i) a rigid fit per cluster and frame (Eq. 9, Kabsch with the det
+   correction), (ii) relabelling every point to the bone with the smallest residual over
+   the sequence, (iii) local continuity: each point takes the majority label in a ball.
+3. Bone graph between clusters that touch, weighted by Eq. (10) (residuals after swapping
+   transforms), minimum spanning tree, root = the cluster whose centre is closest to the
+   rest pose centre.
+4. Refinement (thresholds are fractions of M or of the subject size, so they carry over
+   from a hand to a body), repeated until nothing changes:
+   - bones with fewer than `min_bone_fraction` of the points are dropped (their points go
+     to the bone that fits them best): too few points for a reliable rigid fit;
+   - bones with too little motion of their own are merged into the parent: when moving a
+     bone with its parent's transform (Eq. 10, the swap) displaces its points by an RMS
+     below max(`motion_noise_factor` x the RMS residual of the rigid fits, the noise of
+     the registered points, or `min_motion_fraction` x the subject size), nothing
+     distinguishes it from its parent. Clusters inside one rigid part differ by a few
+     millimetres (the deformation graph bends smoothly), real joints by centimetres;
+   - paper rule 1: at a joint with several children, a child that is a leaf and holds
+     fewer than `leaf_min_fraction` of the points is removed;
+   - paper rule 2: loops cannot occur, the graph is a spanning tree rebuilt after each
+     change;
+   - paper rule 3: two adjacent joints closer than `joint_merge_fraction` of the subject
+     size are merged (the short bone between them goes to its parent).
+5. Initial joint locations c_jk minimise E_Joint (Sec. 6) for the fitted transforms:
+   eta |c - c~|^2 + sum_t |(R_j^t - R_k^t) c + T_j^t - T_k^t|^2, c~ the centroid of the
+   boundary points between the two bones; a 3 x 3 solve per joint.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import sparse
+from scipy.cluster.vq import kmeans2
+from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
+from scipy.spatial import cKDTree
+
+from .rigid import fit_rigid_segments, segment_matrix
+
+
+class StructureError(ValueError):
+    """The sequence cannot give a skeleton (e.g. no motion separates any bones)."""
+
+
+@dataclass
+class StructureParams:
+    """Parameters of the skeletal structure extraction.
+
+    n_clusters: initial K of K-means (more than the expected bones; extra ones are merged).
+    cluster_on: 'trajectories' (each point's registered path, F x 3 values) or 'rest'
+        (rest positions only).
+    n_rounds: rounds of fit / relabel / continuity (the paper uses 10).
+    neighbour_radius: ball radius (m) for local continuity and bone adjacency; None =
+        `neighbour_radius_factor` x the median rest point spacing.
+    min_bone_fraction, motion_noise_factor, min_motion_fraction, leaf_min_fraction,
+        joint_merge_fraction: refinement thresholds (see the module docstring).
+    eta: weight of the joint data term (Table 1).
+    seed: K-means seed.
+    """
+
+    n_clusters: int = 30
+    cluster_on: str = 'trajectories'
+    n_rounds: int = 10
+    neighbour_radius: float | None = None
+    neighbour_radius_factor: float = 2.5
+    min_bone_fraction: float = 0.01
+    motion_noise_factor: float = 4.0
+    min_motion_fraction: float = 0.01
+    leaf_min_fraction: float = 0.02
+    joint_merge_fraction: float = 0.03
+    eta: float = 1.0
+    seed: int = 0
+
+    def __post_init__(self):
+        if self.cluster_on not in ('trajectories', 'rest'):
+            raise ValueError(f"cluster_on must be 'trajectories' or 'rest', got {self.cluster_on!r}")
+        if self.n_clusters < 2 or self.n_rounds < 0:
+            raise ValueError('n_clusters must be >= 2 and n_rounds >= 0')
+
+
+@dataclass
+class SkeletalStructure:
+    """Bones and bone tree of a registered sequence.
+
+    labels: (M,) bone of each rest point; parents: (B,) parent bone (-1 for the root);
+    rotations (F, B, 3, 3) and translations (F, B, 3): bone transforms, rest -> frame;
+    joints: (B, 3) rest-frame joint between each bone and its parent (for the root: its
+    centre); boundary_centroids: (B, 3) the c~ of each joint (root: its centre).
+    """
+
+    labels: np.ndarray
+    parents: np.ndarray
+    rotations: np.ndarray
+    translations: np.ndarray
+    joints: np.ndarray
+    boundary_centroids: np.ndarray
+
+    @property
+    def n_bones(self) -> int:
+        return len(self.parents)
+
+    @property
+    def root(self) -> int:
+        return int(np.flatnonzero(self.parents < 0)[0])
+
+    def joint_trajectories(self) -> np.ndarray:
+        """(F, B, 3) joint positions per frame (metres)."""
+        return joint_trajectories(self.rotations, self.translations, self.joints, self.parents)
+
+
+def joint_trajectories(rotations, translations, joints, parents) -> np.ndarray:
+    """(F, B, 3) per-frame joints: each joint (B, 3) carried by the mean of its bone's and its
+    parent bone's transforms (the root joint by the root bone)."""
+    own = np.einsum('fbij,bj->fbi', rotations, joints) + translations
+    parent_of = np.where(parents < 0, np.arange(len(parents)), parents)
+    by_parent = np.einsum('fbij,bj->fbi', rotations[:, parent_of], joints) + translations[:, parent_of]
+    return 0.5 * (own + by_parent)
+
+
+def _neighbour_graph(rest: np.ndarray, radius: float) -> sparse.csr_matrix:
+    """(M, M) symmetric 0/1 adjacency of points within `radius`, with the diagonal."""
+    pairs = cKDTree(rest).query_pairs(radius, output_type='ndarray')
+    M = len(rest)
+    rows = np.concatenate([pairs[:, 0], pairs[:, 1], np.arange(M)])
+    cols = np.concatenate([pairs[:, 1], pairs[:, 0], np.arange(M)])
+    return sparse.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(M, M))
+
+
+def _compact(labels: np.ndarray) -> np.ndarray:
+    return np.unique(labels, return_inverse=True)[1].ravel()
+
+
+def _residuals(rest, registered, rotations, translations) -> np.ndarray:
+    """(M, S) sum over frames of |y_m^t - (R_s^t q_m + T_s^t)|^2 (m^2); loop over frames."""
+    residual = np.zeros((len(rest), rotations.shape[1]))
+    for t in range(len(registered)):
+        predicted = np.einsum('sij,mj->msi', rotations[t], rest) + translations[t]
+        residual += np.sum((registered[t][:, None, :] - predicted) ** 2, axis=2)
+    return residual
+
+
+def _majority(labels: np.ndarray, adjacency: sparse.csr_matrix, n_labels: int) -> np.ndarray:
+    """Each point's most frequent label within its ball (itself included)."""
+    counts = adjacency @ segment_matrix(labels, n_labels).T
+    return np.asarray(counts.argmax(axis=1)).ravel()
+
+
+def _bone_tree(labels, residual, adjacency, rest):
+    """MST over touching clusters with Eq. (10) weights; returns parents (B,)."""
+    B = residual.shape[1]
+    summer = segment_matrix(labels, B)
+    counts = np.asarray(summer.sum(axis=1)).ravel()
+    mean_residual = (summer @ residual) / np.maximum(counts, 1)[:, None]     # (B, B): mean_{m in i} r_mj
+    weights = mean_residual + mean_residual.T                                  # Eq. (10)
+    touching = (summer @ adjacency @ summer.T).toarray() > 0
+    # Bones that do not touch can only be joined if the touching graph is disconnected:
+    # a large offset keeps them out of the tree otherwise.
+    offset = 1.0 + 10.0 * weights.max()
+    graph = np.where(touching, weights, weights + offset)
+    np.fill_diagonal(graph, 0.0)
+    tree = minimum_spanning_tree(sparse.csr_matrix(graph + 1e-12 * (1 - np.eye(B)))).toarray()
+    tree = (tree + tree.T) > 0
+    centres = (summer @ rest) / np.maximum(counts, 1)[:, None]
+    root = int(np.argmin(np.linalg.norm(centres - rest.mean(axis=0), axis=1)))
+    order, predecessors = breadth_first_order(sparse.csr_matrix(tree), root, directed=False)
+    parents = np.where(predecessors < 0, -1, predecessors)
+    parents[root] = -1
+    return parents
+
+
+def _own_motion(residual: np.ndarray, labels: np.ndarray, parents: np.ndarray, n_frames: int) -> np.ndarray:
+    """(B,) RMS displacement (m) per frame of bone b's points and its parent's when each is
+    moved with the other's transform (the symmetric swap of Eq. 10); inf for the root."""
+    B = len(parents)
+    summer = segment_matrix(labels, B)
+    counts = np.maximum(np.asarray(summer.sum(axis=1)).ravel(), 1)
+    mean_residual = (summer @ residual) / counts[:, None]
+    result = np.full(B, np.inf)
+    child = np.flatnonzero(parents >= 0)
+    result[child] = np.sqrt((mean_residual[child, parents[child]] + mean_residual[parents[child], child])
+                            / (2.0 * n_frames))
+    return result
+
+
+def solve_joints(rotations, translations, parents, anchors, eta: float) -> np.ndarray:
+    """(B, 3) rest-frame joints minimising E_Joint for each bone and its parent.
+
+    (eta I + sum_t D_t^T D_t) c = eta c~ - sum_t D_t^T (T_p - T_b), D_t = R_p^t - R_b^t.
+    Root rows return their anchor.
+    """
+    joints = anchors.copy()
+    child = np.flatnonzero(parents >= 0)
+    if len(child) == 0:
+        return joints
+    parent = parents[child]
+    D = rotations[:, parent] - rotations[:, child]                               # (F, E, 3, 3)
+    dT = translations[:, parent] - translations[:, child]                        # (F, E, 3)
+    A = eta * np.eye(3) + np.einsum('feji,fejk->eik', D, D)
+    b = eta * anchors[child] - np.einsum('feji,fej->ei', D, dT)
+    joints[child] = np.linalg.solve(A, b[..., None])[..., 0]
+    return joints
+
+
+def boundary_centroids(labels, parents, adjacency, rest) -> np.ndarray:
+    """(B, 3) centroid of the points of bone b or of its parent that touch the other one
+    (the root gets its own centre)."""
+    B = len(parents)
+    summer = segment_matrix(labels, B)
+    touches = (adjacency @ summer.T).tocsr()                                    # (M, B) neighbours per bone
+    centres = (summer @ rest) / np.maximum(np.asarray(summer.sum(axis=1)).ravel(), 1)[:, None]
+    result = centres.copy()
+    for b in np.flatnonzero(parents >= 0):  # loop over bones, not points
+        p = parents[b]
+        on_boundary = ((labels == b) & (touches[:, p].toarray().ravel() > 0)) | \
+                      ((labels == p) & (touches[:, b].toarray().ravel() > 0))
+        if on_boundary.any():
+            result[b] = rest[on_boundary].mean(axis=0)
+        else:
+            result[b] = 0.5 * (centres[b] + centres[p])
+    return result
+
+
+def extract_structure(rest: np.ndarray, registered: np.ndarray,
+                      params: StructureParams | None = None) -> SkeletalStructure:
+    """Bones and bone tree from rest points (M, 3) and their registered sequence (F, M, 3)."""
+    params = params or StructureParams()
+    rest = np.asarray(rest, dtype=np.float64)
+    registered = np.asarray(registered, dtype=np.float64)
+    registered = registered[np.isfinite(registered).all(axis=(1, 2))]
+    if len(registered) < 2:
+        raise StructureError('fewer than 2 registered frames: no motion to separate bones')
+    M = len(rest)
+    size = float(np.linalg.norm(np.ptp(rest, axis=0)))
+    spacing = float(np.median(cKDTree(rest).query(rest, k=2)[0][:, 1]))
+    radius = params.neighbour_radius or params.neighbour_radius_factor * spacing
+    adjacency = _neighbour_graph(rest, radius)
+
+    features = rest if params.cluster_on == 'rest' else registered.transpose(1, 0, 2).reshape(M, -1)
+    K = min(params.n_clusters, M // 10)
+    rng = np.random.default_rng(params.seed)
+    _, labels = kmeans2(features, K, minit='++', seed=rng)
+    labels = _compact(labels)
+
+    for _ in range(params.n_rounds):
+        S = labels.max() + 1
+        rotations, translations = fit_rigid_segments(rest, registered, labels, S)
+        residual = _residuals(rest, registered, rotations, translations)
+        labels = _compact(np.argmin(residual, axis=1))
+        labels = _compact(_majority(labels, adjacency, labels.max() + 1))
+
+    for _ in range(4 * K):  # refinement until stable; each pass removes one bone at most
+        B = labels.max() + 1
+        rotations, translations = fit_rigid_segments(rest, registered, labels, B)
+        residual = _residuals(rest, registered, rotations, translations)
+        if B == 1:
+            parents = np.array([-1])
+            break
+        parents = _bone_tree(labels, residual, adjacency, rest)
+        counts = np.bincount(labels, minlength=B)
+        remove = None
+        small = np.flatnonzero(counts < params.min_bone_fraction * M)
+        if len(small):
+            remove = int(small[np.argmin(counts[small])])
+        if remove is None:
+            motion = _own_motion(residual, labels, parents, len(registered))
+            noise = np.sqrt(np.median(residual[np.arange(M), labels]) / len(registered))
+            still = np.flatnonzero(motion < max(params.motion_noise_factor * noise,
+                                                params.min_motion_fraction * size))
+            if len(still):
+                remove = int(still[np.argmin(motion[still])])
+        if remove is None:
+            children = np.bincount(parents[parents >= 0], minlength=B)
+            for b in np.flatnonzero(parents >= 0):
+                if children[b] == 0 and children[parents[b]] > 1 and counts[b] < params.leaf_min_fraction * M:
+                    remove = int(b)
+                    break
+        if remove is None:
+            anchors = boundary_centroids(labels, parents, adjacency, rest)
+            joints = solve_joints(rotations, translations, parents, anchors, params.eta)
+            for b in np.flatnonzero(parents >= 0):
+                p = parents[b]
+                if parents[p] >= 0 and np.linalg.norm(joints[b] - joints[p]) < params.joint_merge_fraction * size:
+                    remove = int(p)   # the short bone between the two joints
+                    break
+        if remove is None:
+            break
+        # hand the removed bone's points to the remaining bone that fits each best
+        keep = np.flatnonzero(np.arange(B) != remove)
+        moved = labels == remove
+        labels[moved] = keep[np.argmin(residual[moved][:, keep], axis=1)]
+        labels = _compact(labels)
+
+    B = labels.max() + 1
+    if B < 2:
+        raise StructureError('the motion is too small to separate any bones: every part '
+                             'of the subject moves rigidly together')
+    anchors = boundary_centroids(labels, parents, adjacency, rest)
+    joints = solve_joints(rotations, translations, parents, anchors, params.eta)
+    return SkeletalStructure(labels, parents, rotations, translations, joints, anchors)
