@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Sets up the environment and runs the main job on the bundled sample bag
 # (bags/sample_human: 60 frames of a simulated full body at 320x240 with Kinect noise):
-# preprocessing, rest pose and non-rigid registration, then the evaluation against the
+# preprocessing, rest pose, non-rigid registration, skeletal structure and joints, then the
+# evaluation of skeleton.json and registered.npz against the
 # bag's ground truth. Results go to out/sample_human/ (or the directory given as $1).
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -17,4 +18,4 @@ if [ ! -f "$SAMPLE/metadata.yaml" ]; then
 fi
 "$CLI" info "$SAMPLE"
 "$CLI" run "$SAMPLE" --out "$OUT"
-"$CLI" evaluate --gt "$SAMPLE/gt.npz" --registered "$OUT/registered.npz"
+"$CLI" evaluate --gt "$SAMPLE/gt.npz" --pred "$OUT/skeleton.json" --registered "$OUT/registered.npz"

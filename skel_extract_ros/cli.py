@@ -95,19 +95,16 @@ def _cmd_run(args) -> int:
     import itertools
 
     from .bag import BagError, cloud_topics, read_cloud_frames, select_cloud_topic
-    from .core.sequence import SequenceRegistration
+    from .core.pipeline import SkeletonPipeline
+    from .core.structure import StructureError
+    from .params import ParamsError, load_params_file, pipeline_params
     from .progress import progress_bar
-    from .params import ParamsError, load_params_file, registration_params_from_dict
+    from .visualization import draw_skeleton_png
 
     out = Path(args.out)
     frames_slice = _parse_frame_range(args.frames)
     try:
-        if args.params:
-            nodes = load_params_file(args.params)
-            params, rest_params, preprocess_params = registration_params_from_dict(
-                nodes.get('registration_node', {}))
-        else:
-            params = rest_params = preprocess_params = None
+        settings = pipeline_params(load_params_file(args.params)) if args.params else {}
         topic = select_cloud_topic(args.input, args.topic)
         n_messages = cloud_topics(args.input)[topic]
     except (BagError, ParamsError) as error:
@@ -118,15 +115,15 @@ def _cmd_run(args) -> int:
         raise UserError(f'{args.input}: {n_frames} frame(s) selected on {topic}; at least 2 are needed')
     out.mkdir(parents=True, exist_ok=True)
 
-    stamps, frame_ids = [], set()
+    stamps, frame_ids = [], []
 
     def clouds():
         for frame in itertools.islice(read_cloud_frames(args.input, topic), start, stop):
             stamps.append(frame.stamp)
-            frame_ids.add(frame.frame_id)
+            frame_ids.append(frame.frame_id)
             yield frame.points
 
-    registration = SequenceRegistration(params, rest_params, preprocess_params)
+    pipeline = SkeletonPipeline(**settings)
     progress = progress_bar(total=n_frames, desc='register', unit='frame')
     counts = {}
 
@@ -137,27 +134,41 @@ def _cmd_run(args) -> int:
 
     started = time.perf_counter()
     try:
-        registered = registration.register(clouds(), on_frame=on_frame)
+        registered = pipeline.register(clouds(), on_frame=on_frame)
     except BagError as error:
         raise UserError(str(error)) from None
     finally:
         progress.close()
-    total = time.perf_counter() - started
+    registration = pipeline.registration
     if registration.rest_pose_ is None:
         raise UserError(f'{args.input}: no frame had enough points for a rest pose '
                         '(is the subject in view? check the preprocessing parameters)')
-    np.savez_compressed(out / 'registered.npz', points=registered, stamps=np.array(stamps),
+    frame_id = frame_ids[0] if frame_ids else ''
+    stamps = np.array(stamps)
+    np.savez_compressed(out / 'registered.npz', points=registered, stamps=stamps,
                         status=registration.statuses_, sigma2=registration.sigma2_,
                         rest_points=registration.rest_pose_.points.astype(np.float32),
-                        frame_id=np.array(sorted(frame_ids)[0] if frame_ids else ''))
-    times = registration.times_
-    per_frame = np.array(times.per_frame_registration) * 1000.0
-    print(f'registered {len(registered)} frames of {registered.shape[1]} points in {total:.1f} s '
-          f'-> {out / "registered.npz"}')
-    print(f'  preprocess {times.preprocess:.1f} s | rest pose {times.rest_pose:.1f} s | '
-          f'registration {times.registration:.1f} s (median {np.median(per_frame):.0f} ms/frame, '
-          f'max {per_frame.max():.0f})')
-    print('  frames: ' + ', '.join(f'{n} {status}' for status, n in sorted(counts.items())))
+                        frame_id=np.array(frame_id))
+    print(f'registered {len(registered)} frames of {registered.shape[1]} points -> {out / "registered.npz"}'
+          f'  ({", ".join(f"{n} {status}" for status, n in sorted(counts.items()))})')
+    print('extracting the skeleton (steps 2 and 3) ...', file=sys.stderr)
+    try:
+        result = pipeline.extract(registered)
+    except StructureError as error:
+        raise UserError(f'{args.input}: {error}') from None
+    document = result.model.to_json(stamps[result.frames], result.joint_positions, frame_id)
+    (out / 'skeleton.json').write_text(json.dumps(document))
+    draw_skeleton_png(out / 'skeleton.png', result.observed, registered[result.frames],
+                      result.model.labels, result.joint_positions, result.model.parents,
+                      stamps[result.frames])
+    total = time.perf_counter() - started
+    per_frame = np.array(registration.times_.per_frame_registration) * 1000.0
+    seconds = result.seconds
+    print(f'skeleton: {result.model.n_joints} joints, {result.structure.n_bones} bones '
+          f'-> {out / "skeleton.json"}, {out / "skeleton.png"}')
+    print(f'time: preprocess {seconds["preprocess"]:.1f} s | rest pose {seconds["rest_pose"]:.1f} s | '
+          f'registration {seconds["registration"]:.1f} s (median {np.median(per_frame):.0f} ms/frame) | '
+          f'structure {seconds["structure"]:.1f} s | joints {seconds["joints"]:.1f} s | total {total:.1f} s')
     return 0
 
 

@@ -11,9 +11,11 @@ from pathlib import Path
 
 import yaml
 
+from .core.joints import JointParams
 from .core.preprocess import PreprocessParams
 from .core.registration import RegistrationParams
 from .core.rest_pose import RestPoseParams
+from .core.structure import StructureParams
 
 # In a source checkout; the same file is installed to share/skel_extract_ros/params/.
 # Its values equal the dataclass defaults (a test keeps them in sync), so code that gets no
@@ -56,6 +58,24 @@ def registration_params_from_dict(values: dict, where: str = 'registration_node'
     return (_build(RegistrationParams, values, where),
             _build(RestPoseParams, rest_pose, f'{where}.rest_pose'),
             _build(PreprocessParams, preprocess, f'{where}.preprocess'))
+
+
+def structure_params_from_dict(values: dict, where: str = 'accumulator_node') -> StructureParams:
+    """StructureParams from the accumulator node's parameters (window keys are the node's)."""
+    values = {k: v for k, v in values.items() if k not in ('window_size', 'sliding', 'stride')}
+    return _build(StructureParams, values, where)
+
+
+def joint_params_from_dict(values: dict, where: str = 'joint_estimation_node') -> JointParams:
+    return _build(JointParams, values, where)
+
+
+def pipeline_params(nodes: dict) -> dict:
+    """Keyword arguments of SkeletonPipeline from a loaded parameter file."""
+    registration, rest_pose, preprocess = registration_params_from_dict(nodes.get('registration_node', {}))
+    return {'registration': registration, 'rest_pose': rest_pose, 'preprocess': preprocess,
+            'structure': structure_params_from_dict(nodes.get('accumulator_node', {})),
+            'joints': joint_params_from_dict(nodes.get('joint_estimation_node', {}))}
 
 
 def load_params_file(path) -> dict:

@@ -58,20 +58,50 @@ def test_existing_output_is_not_overwritten(tmp_path):
     assert done.returncode == 2 and 'already exists' in done.stderr
 
 
-def test_run_on_the_sample_bag_writes_registered_points(tmp_path, sample_bag):
+def test_run_on_the_sample_bag_end_to_end(tmp_path, sample_bag):
+    """The whole pipeline on the bundled bag, scored by the evaluation metric.
+
+    The bounds guard against regressions at today's measured level (registration 2.1 cm;
+    joints 7.9 cm mean, 2.1 cm normalised, recall 0.67); the issue's accuracy targets are
+    tracked by the benchmark, not here.
+    """
     out = tmp_path / 'out'
-    done = run('run', sample_bag, '--out', out, '--frames', '0:15')
+    done = run('run', sample_bag, '--out', out)
     assert done.returncode == 0, done.stderr
-    assert 'registration' in done.stdout and 'ms/frame' in done.stdout
+    assert 'ms/frame' in done.stdout and 'joints' in done.stdout
     assert 'register' in done.stderr  # progress
     data = np.load(out / 'registered.npz')
     gt = np.load(sample_bag / 'gt.npz')
-    assert data['points'].shape == (15, 2000, 3)
-    np.testing.assert_allclose(data['stamps'], gt['stamps'][:15])
+    assert data['points'].shape == (60, 2000, 3)
+    np.testing.assert_allclose(data['stamps'], gt['stamps'])
     assert str(data['frame_id']) == 'camera_depth_optical_frame'
-    done = run('evaluate', '--gt', sample_bag / 'gt.npz', '--registered', out / 'registered.npz', '--json')
-    registration = json.loads(done.stdout)['registration']
-    assert registration['mean_error_m'] < 0.03, registration
+    skeleton = json.loads((out / 'skeleton.json').read_text())
+    assert skeleton['frame_id'] == 'camera_depth_optical_frame'
+    n_joints = len(skeleton['joint_names'])
+    assert len(skeleton['parents']) == n_joints == len(skeleton['rest_positions'])
+    assert skeleton['parents'].count(-1) == 1
+    assert len(skeleton['frames']) == 60
+    assert skeleton['frames'][5]['stamp'] == pytest.approx(float(gt['stamps'][5]))
+    assert (out / 'skeleton.png').stat().st_size > 10_000
+    done = run('evaluate', '--gt', sample_bag / 'gt.npz', '--registered', out / 'registered.npz',
+               '--pred', out / 'skeleton.json', '--json')
+    report = json.loads(done.stdout)
+    assert report['registration']['mean_error_m'] < 0.03, report['registration']
+    joints = report['joints']
+    assert joints['recall'] >= 0.5 and joints['mean_error_m'] < 0.11 and joints['normalized_error_m'] < 0.04, joints
+
+
+def test_run_says_plainly_when_nothing_moves(tmp_path):
+    """A rigid subject: registration works, but no bones can be separated."""
+    from skel_extract_ros.bag import write_cloud_bag
+    from skel_extract_ros.sim import generate_sequence
+    seq = generate_sequence('fish', 1, seed=3, progress=False)
+    bag = write_cloud_bag(tmp_path / 'still', [seq.clouds[0]] * 12,
+                          1_700_000_000 * 10**9 + np.arange(12) * 33_333_333, 'camera_depth_optical_frame')
+    done = run('run', bag, '--out', tmp_path / 'out')
+    assert done.returncode == 2
+    assert 'too small to separate any bones' in done.stderr.strip().splitlines()[-1]
+    assert (tmp_path / 'out' / 'registered.npz').is_file()  # the registration is kept
 
 
 def test_run_errors(tmp_path, sample_bag):

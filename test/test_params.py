@@ -3,11 +3,13 @@ import dataclasses
 
 import pytest
 
+from skel_extract_ros.core.joints import JointParams
 from skel_extract_ros.core.preprocess import PreprocessParams
 from skel_extract_ros.core.registration import RegistrationParams
 from skel_extract_ros.core.rest_pose import RestPoseParams
+from skel_extract_ros.core.structure import StructureParams
 from skel_extract_ros.params import (DEFAULT_PARAMS_FILE, ParamsError, load_params_file,
-                                     registration_params_from_dict)
+                                     pipeline_params, registration_params_from_dict)
 
 
 def test_yaml_defaults_equal_dataclass_defaults():
@@ -17,7 +19,11 @@ def test_yaml_defaults_equal_dataclass_defaults():
     assert rest == RestPoseParams()
     assert preprocess == PreprocessParams()
     # every dataclass field is documented in the file
-    for cls, section in ((RegistrationParams, nodes['registration_node']),
+    settings = pipeline_params(nodes)
+    assert settings['structure'] == StructureParams() and settings['joints'] == JointParams()
+    for cls, section in ((StructureParams, nodes['accumulator_node']),
+                         (JointParams, nodes['joint_estimation_node']),
+                         (RegistrationParams, nodes['registration_node']),
                          (RestPoseParams, nodes['registration_node']['rest_pose']),
                          (PreprocessParams, nodes['registration_node']['preprocess'])):
         assert {f.name for f in dataclasses.fields(cls)} <= set(section)

@@ -35,15 +35,20 @@ class SequenceRegistration:
 
     Parameters are dataclasses (see their docstrings). Frames before the first usable one
     get NaN points and status 'empty'. Attributes set by `register` (sklearn style):
-    rest_pose_, statuses_ (F,), sigma2_ (F,), iterations_ (F,), times_.
+    rest_pose_, statuses_ (F,), sigma2_ (F,), iterations_ (F,), times_, and with
+    keep_observed the preprocessed frames observed_ (list of (N_t, 3) float32).
     """
 
     def __init__(self, params: RegistrationParams | None = None,
                  rest_params: RestPoseParams | None = None,
-                 preprocess_params: PreprocessParams | None = None):
+                 preprocess_params: PreprocessParams | None = None,
+                 keep_observed: bool = False):
         self.params = params or RegistrationParams()
         self.rest_params = rest_params or RestPoseParams()
         self.preprocess_params = preprocess_params or PreprocessParams()
+        # Joint estimation (Alg. 2) needs the preprocessed points of every frame; keeping
+        # them costs about 60 kB per frame (float32, 5000 points).
+        self.keep_observed = keep_observed
 
     def register(self, frames: Iterable[np.ndarray],
                  on_frame: Callable[[int, str], None] | None = None) -> np.ndarray:
@@ -56,11 +61,14 @@ class SequenceRegistration:
         self.rest_pose_ = None
         registration = None
         points, statuses, sigma2, iterations = [], [], [], []
+        self.observed_ = []
         M = self.rest_params.n_points
         for index, raw in enumerate(frames):
             started = time.perf_counter()
             observed = preprocess(raw)
             self.times_.preprocess += time.perf_counter() - started
+            if self.keep_observed:
+                self.observed_.append(observed.astype(np.float32))
             if registration is None:
                 if len(observed) >= max(100, M // 10):
                     started = time.perf_counter()

@@ -68,7 +68,7 @@ class StructureParams:
     neighbour_radius_factor: float = 2.5
     min_bone_fraction: float = 0.01
     motion_noise_factor: float = 4.0
-    min_motion_fraction: float = 0.01
+    min_motion_fraction: float = 0.02
     leaf_min_fraction: float = 0.02
     joint_merge_fraction: float = 0.03
     eta: float = 1.0
