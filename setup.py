@@ -31,8 +31,8 @@ setup(
         'tqdm>=4.60',
     ],
     extras_require={
-        # benchmark-only peers: Coherent Point Drift implementations
-        'bench': ['rustcpd==4.0.0', 'pycpd==2.0.0'],
+        # benchmark-only peers: Coherent Point Drift implementations and Dem Bones (SSDR)
+        'bench': ['rustcpd==4.0.0', 'pycpd==2.0.0', 'py-dem-bones==0.13.1'],
     },
     zip_safe=True,
     maintainer='skel_extract_ros developers',

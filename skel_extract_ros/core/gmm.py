@@ -51,7 +51,8 @@ def gmm_posteriors(observed: np.ndarray, centroids: np.ndarray, sigma2: float, o
     # The k-d tree is over the centroids and rebuilt per call; its query cost does not grow
     # with sigma, unlike a fixed-radius search that visits every centroid in the ball.
     radius = truncation_sigmas * np.sqrt(sigma2)
-    d, idx = cKDTree(centroids).query(observed, k=K, distance_upper_bound=radius, workers=-1)
+    # One worker: for a few thousand queries, thread start-up costs more than it saves.
+    d, idx = cKDTree(centroids).query(observed, k=K, distance_upper_bound=radius)
     d, idx = d.reshape(N, K), idx.reshape(N, K)
     found = idx < M
     gauss = np.where(found, np.exp(-np.where(found, d, 0.0) ** 2 / (2.0 * sigma2)), 0.0)

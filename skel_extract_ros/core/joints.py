@@ -166,22 +166,29 @@ class JointEstimation:
         alpha = p.zeta * M
         edges = [(int(b), int(parents[b])) for b in range(B) if parents[b] >= 0]
         energies = []
+        previous = None          # (energy terms of the previous iterate, its alpha)
+        deformed = self._deform(rest, rotations, translations, influences, weights)
         for _ in range(p.max_iterations):
-            deformed = self._deform(rest, rotations, translations, influences, weights)
             stats = [gmm_posteriors(v, x, t, p.omega, p.e_step_neighbours, p.truncation_sigmas)
                      if len(v) else None for v, x, t in zip(observed, deformed, tau)]
             P1 = np.stack([s.P1 if s else np.zeros(M) for s in stats])              # (F, M)
             targets = np.stack([s.targets() if s else np.zeros((M, 3)) for s in stats])
-            energy = sum(s.nll for s in stats if s) \
-                + 0.5 * p.zeta * np.sum((registered - deformed) ** 2) \
-                + 0.5 * alpha * self._joint_energy(rotations, translations, joints, anchors, edges)
-            energies.append(float(energy))
-            if len(energies) > 1 and abs(energies[-2] - energies[-1]) <= p.tolerance * abs(energies[-1]):
-                break
+            data = sum(s.nll for s in stats if s) + 0.5 * p.zeta * np.sum((registered - deformed) ** 2)
+            joint_term = self._joint_energy(rotations, translations, joints, anchors, edges)
+            energies.append(float(data + 0.5 * alpha * joint_term))
+            # alpha grows every iteration, so consecutive totals differ even at a fixed point:
+            # the convergence test compares the two iterates under the same (previous) alpha.
+            if previous is not None:
+                before = previous[0] + 0.5 * previous[2] * previous[1]
+                after = data + 0.5 * previous[2] * joint_term
+                if abs(before - after) <= p.tolerance * abs(after):
+                    break
+            previous = (data, joint_term, alpha)
             a = P1 / tau[:, None]                                                    # (F, M)
-            influences, weights = self._update_weights(rest, registered, targets, a, rotations, translations, k)
+            positions = self._bone_positions(rest, rotations, translations)
+            influences, weights = self._update_weights(registered, targets, a, positions, k)
             self._update_bones(rest, registered, targets, a, rotations, translations, influences, weights,
-                               joints, edges, alpha)
+                               joints, edges, alpha, positions)
             joints = solve_joints(rotations, translations, parents, anchors, p.eta)
             deformed = self._deform(rest, rotations, translations, influences, weights)
             tau = np.array([max(s.squared_residual(x) / (3.0 * max(s.Np, 1e-12)), p.min_tau) if s else t
@@ -191,9 +198,22 @@ class JointEstimation:
 
     # ------------------------------------------------------------------------------------
     @staticmethod
-    def _deform(rest, rotations, translations, influences, weights) -> np.ndarray:
+    def _bone_positions(rest, rotations, translations) -> np.ndarray:
+        """(F, B, M, 3) every rest point moved by every bone: R_j^t q_m + T_j^t."""
+        F, B = rotations.shape[:2]
+        # one GEMM (M x 3) @ (3 x F*B*3) instead of F*B tiny matrix products
+        moved = rest @ rotations.transpose(3, 0, 1, 2).reshape(3, -1)
+        return moved.reshape(len(rest), F, B, 3).transpose(1, 2, 0, 3) + translations[:, :, None, :]
+
+    @staticmethod
+    def _gather(positions, influences) -> np.ndarray:
+        """(F, M, k, 3) the positions of each point under its k influencing bones."""
+        return positions[:, influences, np.arange(influences.shape[0])[:, None]]
+
+    @classmethod
+    def _deform(cls, rest, rotations, translations, influences, weights) -> np.ndarray:
         """Eq. (8): (F, M, 3) LBS positions."""
-        positions = np.einsum('fmkij,mj->fmki', rotations[:, influences], rest) + translations[:, influences]
+        positions = cls._gather(cls._bone_positions(rest, rotations, translations), influences)
         return np.einsum('mk,fmki->fmi', weights, positions)
 
     @staticmethod
@@ -209,30 +229,26 @@ class JointEstimation:
                - np.einsum('feij,ej->fei', rotations[:, parent], c) - translations[:, parent])
         return float(np.sum(gap ** 2) + np.sum((c - anchors[child]) ** 2))
 
-    def _update_weights(self, rest, registered, targets, a, rotations, translations, k):
+    def _update_weights(self, registered, targets, a, positions, k):
         """Per point: the k bones with the smallest single-bone objective, then the exact
-        simplex-constrained least squares on them."""
+        simplex-constrained least squares on them. positions: (F, B, M, 3) bone positions."""
         zeta = self.params.zeta
         F, M, _ = registered.shape
         c = a + zeta                                                                  # (F, M)
         z = (a[..., None] * targets + zeta * registered) / c[..., None]               # (F, M, 3)
-        B = rotations.shape[1]
-        single = np.zeros((M, B))
-        for t in range(F):  # loop over frames, vectorised over points and bones
-            positions = np.einsum('bij,mj->mbi', rotations[t], rest) + translations[t]
-            single += c[t][:, None] * np.sum((z[t][:, None, :] - positions) ** 2, axis=2)
+        single = np.einsum('fm,fbm->mb', c, np.sum((z[:, None] - positions) ** 2, axis=3))
         influences = np.argsort(single, axis=1)[:, :k]
-        G = np.zeros((M, k, k))
-        h = np.zeros((M, k))
-        for t in range(F):
-            positions = np.einsum('mkij,mj->mki', rotations[t][influences], rest) + translations[t][influences]
-            G += c[t][:, None, None] * np.einsum('mai,mbi->mab', positions, positions)
-            h += c[t][:, None] * np.einsum('mai,mi->ma', positions, z[t])
+        chosen = self._gather(positions, influences)                                  # (F, M, k, 3)
+        per_point = chosen.transpose(1, 2, 0, 3).reshape(M, k, F * 3)                 # (M, k, 3F)
+        weighted = (chosen * c[:, :, None, None]).transpose(1, 2, 0, 3).reshape(M, k, F * 3)
+        G = weighted @ per_point.transpose(0, 2, 1)
+        h = (weighted @ z.transpose(1, 0, 2).reshape(M, F * 3, 1))[..., 0]
         return influences, simplex_least_squares(G, h)
 
     def _update_bones(self, rest, registered, targets, a, rotations, translations, influences, weights,
-                      joints, edges, alpha) -> None:
-        """Eq. (13)-(15), bone after bone, every frame at once (in place)."""
+                      joints, edges, alpha, positions) -> None:
+        """Eq. (13)-(15), bone after bone, every frame at once (in place); positions:
+        (F, B, M, 3) bone positions for the current transforms."""
         p = self.params
         F, M, _ = registered.shape
         B = rotations.shape[1]
@@ -240,8 +256,7 @@ class JointEstimation:
         for child, parent in edges:
             neighbours[child].append((parent, child))   # joint stored on the child bone
             neighbours[parent].append((child, child))
-        contributions = weights[None, :, :, None] * (
-            np.einsum('fmkij,mj->fmki', rotations[:, influences], rest) + translations[:, influences])
+        contributions = weights[None, :, :, None] * self._gather(positions, influences)
         deformed = contributions.sum(axis=2)                                          # (F, M, 3)
         for bone in range(B):  # loop over bones (a few dozen), vectorised over frames and points
             m, slot = np.nonzero((influences == bone) & (weights > 1e-8))
@@ -269,11 +284,11 @@ class JointEstimation:
             total = lam.sum(axis=1)
             mu_a = np.einsum('fp,fpi->fi', lam, A) / total[:, None]
             mu_b = np.einsum('fp,fpi->fi', lam, Bv) / total[:, None]
-            Z = np.einsum('fp,fpi,fpj->fij', lam, A - mu_a[:, None], Bv - mu_b[:, None])
+            Z = np.transpose(lam[..., None] * (A - mu_a[:, None]), (0, 2, 1)) @ (Bv - mu_b[:, None])
             Z += p.gamma * np.transpose(rotations[:, bone], (0, 2, 1))
             R = rotations_from_h(Z)
             rotations[:, bone] = R
             translations[:, bone] = mu_b - np.einsum('fij,fj->fi', R, mu_a)
-            new = w[None, :, None] * (np.einsum('fij,pj->fpi', R, rest[m]) + translations[:, bone][:, None, :])
+            new = w[None, :, None] * (rest[m] @ np.transpose(R, (0, 2, 1)) + translations[:, bone][:, None, :])
             contributions[:, m, slot] = new
             deformed[:, np.unique(m)] = contributions[:, np.unique(m)].sum(axis=2)

@@ -135,11 +135,11 @@ def _compact(labels: np.ndarray) -> np.ndarray:
 
 def _residuals(rest, registered, rotations, translations) -> np.ndarray:
     """(M, S) sum over frames of |y_m^t - (R_s^t q_m + T_s^t)|^2 (m^2); loop over frames."""
-    residual = np.zeros((len(rest), rotations.shape[1]))
+    residual = np.zeros((rotations.shape[1], len(rest)))
     for t in range(len(registered)):
-        predicted = np.einsum('sij,mj->msi', rotations[t], rest) + translations[t]
-        residual += np.sum((registered[t][:, None, :] - predicted) ** 2, axis=2)
-    return residual
+        predicted = rest @ np.transpose(rotations[t], (0, 2, 1)) + translations[t][:, None, :]   # (S, M, 3)
+        residual += np.sum((registered[t][None] - predicted) ** 2, axis=2)
+    return residual.T
 
 
 def _majority(labels: np.ndarray, adjacency: sparse.csr_matrix, n_labels: int) -> np.ndarray:

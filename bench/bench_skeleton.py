@@ -1,0 +1,122 @@
+#!/usr/bin/env python3
+"""Skeleton benchmark: joints after Step 2, after Step 3, and with Dem Bones (SSDR) as peer.
+
+    python bench/bench_skeleton.py [--frames 90] [--subjects human,upper_body,arm,hand,fish]
+
+For each simulated subject (320x240, Kinect noise) the sequence is registered once
+(Step 0-1); then (a) the joints of the skeletal structure (Step 2, the paper's Fig. 5
+situation), (b) the joints after Alg. 2 (Step 3), and (c) Dem Bones' SSDR (py-dem-bones
+0.13.1) run on the same registered sequence, initialised with the Step 2 labels as hard
+weights and the Step 2 bone transforms (its own initialisation needs mesh faces; a
+nearest-neighbour triangle per point gives its weight smoothing an adjacency), its bone
+transforms then turned into joints by the same joint solve (E_Joint). Prints a Markdown
+table; `--json FILE` keeps the raw numbers. Needs the `bench` extra.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from skel_extract_ros.core.pipeline import SkeletonPipeline  # noqa: E402
+from skel_extract_ros.core.structure import boundary_centroids, joint_trajectories, solve_joints  # noqa: E402
+from skel_extract_ros.evaluation import GroundTruth, PredictedSkeleton, evaluate_joints  # noqa: E402
+from skel_extract_ros.sim import generate_sequence  # noqa: E402
+
+
+def dem_bones_joints(rest, registered, structure, eta: float):
+    """SSDR from the Step 2 state, then joints from its bone transforms.
+
+    Dem Bones smooths weights over the mesh; our points have no mesh, and without faces its
+    weight update does nothing (measured: weights stay hard, transforms unchanged). Each
+    rest point with its two nearest neighbours gives it the adjacency it needs.
+    """
+    from py_dem_bones._py_dem_bones import DemBones
+    from scipy.spatial import cKDTree
+    F, M, _ = registered.shape
+    B = structure.n_bones
+    solver = DemBones()
+    solver.clear()
+    solver.nV, solver.nF, solver.nS, solver.nB = M, F, 1, B
+    solver.nnz = min(4, B)
+    solver.nIters = 30
+    solver.fStart = np.array([0, F], dtype=np.int32)
+    solver.subjectID = np.zeros(F, dtype=np.int32)
+    solver.u = np.ascontiguousarray(rest.T)
+    solver.v = np.ascontiguousarray(registered.transpose(0, 2, 1).reshape(3 * F, M))
+    _, nearest = cKDTree(rest).query(rest, k=3)
+    solver.fv = nearest.astype(int).tolist()
+    hard = np.zeros((B, M))
+    hard[structure.labels, np.arange(M)] = 1.0
+    solver.set_weights(hard)
+    transforms = np.zeros((F, B, 4, 4))
+    transforms[:, :, :3, :3] = structure.rotations
+    transforms[:, :, :3, 3] = structure.translations
+    transforms[:, :, 3, 3] = 1.0
+    solver.m = np.ascontiguousarray(transforms.transpose(0, 2, 1, 3).reshape(4 * F, 4 * B))
+    solver.compute()
+    blocks = np.asarray(solver.m).reshape(F, 4, B, 4).transpose(0, 2, 1, 3)
+    rotations, translations = blocks[:, :, :3, :3], blocks[:, :, :3, 3]
+    joints = solve_joints(rotations, translations, structure.parents, structure.boundary_centroids, eta)
+    return joint_trajectories(rotations, translations, joints, structure.parents)
+
+
+def score(positions, parents, stamps, gt):
+    pred = PredictedSkeleton([f'joint_{i}' for i in range(positions.shape[1])], list(parents), stamps, positions)
+    return evaluate_joints(pred, gt)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument('--frames', type=int, default=90)
+    parser.add_argument('--subjects', default='human,upper_body,arm,hand,fish')
+    parser.add_argument('--seed', type=int, default=1)
+    parser.add_argument('--no-dem-bones', action='store_true')
+    parser.add_argument('--json', default=None)
+    args = parser.parse_args()
+    rows = []
+    print('| subject | true joints | method | joints found | mean_error_m | normalized_error_m | recall | seconds |')
+    print('|---|---|---|---|---|---|---|---|')
+    for subject in args.subjects.split(','):
+        seq = generate_sequence(subject, args.frames, seed=args.seed, progress=False)
+        g = seq.ground_truth
+        gt = GroundTruth(g['stamps'], g['joints'], list(g['joint_names']), g['joint_parents'], None,
+                         float(g['subject_scale_m']))
+        pipeline = SkeletonPipeline()
+        started = time.perf_counter()
+        registered = pipeline.register(c.reshape(-1, 3) for c in seq.clouds)
+        register_seconds = time.perf_counter() - started
+        result = pipeline.extract(registered)
+        stamps = g['stamps'][result.frames]
+        n_true = g['joints'].shape[1]
+        entries = [('step 2 (structure)', result.step2_positions, result.structure.parents,
+                    result.seconds['structure']),
+                   ('step 3 (Alg. 2)', result.joint_positions, result.model.parents, result.seconds['joints'])]
+        if not args.no_dem_bones:
+            started = time.perf_counter()
+            positions = dem_bones_joints(pipeline.registration.rest_pose_.points,
+                                         registered[result.frames].astype(np.float64), result.structure, 1.0)
+            entries.append(('Dem Bones SSDR', positions, result.structure.parents, time.perf_counter() - started))
+        for method, positions, parents, seconds in entries:
+            report = score(positions, parents, stamps, gt)
+            rows.append({'subject': subject, 'method': method, 'true_joints': n_true,
+                         'joints': report.n_predicted, 'mean_error_m': report.mean_error_m,
+                         'normalized_error_m': report.normalized_error_m, 'recall': report.recall,
+                         'seconds': seconds, 'register_seconds': register_seconds})
+            print(f'| {subject} | {n_true} | {method} | {report.n_predicted} | {report.mean_error_m:.4f} | '
+                  f'{report.normalized_error_m:.4f} | {report.recall:.2f} | {seconds:.1f} |', flush=True)
+        print(f'| {subject} | | (registration, steps 0-1) | | | | | {register_seconds:.1f} |', flush=True)
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=2))
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
