@@ -90,18 +90,6 @@ class DeformationGraph:
         moved = np.einsum('mkij,mkj->mki', rotations[self.point_nodes], local) + g + translations[self.point_nodes]
         return np.einsum('mk,mki->mi', self.point_weights, moved)
 
-    def deform_points(self, points: np.ndarray, rotations: np.ndarray, translations: np.ndarray,
-                      n_influence: int | None = None) -> np.ndarray:
-        """Deform arbitrary rest-frame points (P, 3) with the same node blending."""
-        k = self.point_nodes.shape[1] if n_influence is None else n_influence
-        distances, nodes = cKDTree(self.node_positions).query(points, k=k + 1)
-        weights = (1.0 - distances[:, :-1] / np.maximum(distances[:, -1:], 1e-12)) ** 2
-        weights /= np.maximum(weights.sum(axis=1, keepdims=True), 1e-12)
-        nodes = nodes[:, :-1]
-        g = self.node_positions[nodes]
-        moved = np.einsum('pkij,pkj->pki', rotations[nodes], points[:, None, :] - g) + g + translations[nodes]
-        return np.einsum('pk,pki->pi', weights, moved)
-
 
 def _greedy_colors(n_nodes: int, edges: np.ndarray) -> list:
     """Partition nodes into sets with no edge inside a set (largest-degree-first greedy).

@@ -166,7 +166,7 @@ class JointEstimation:
         alpha = p.zeta * M
         edges = [(int(b), int(parents[b])) for b in range(B) if parents[b] >= 0]
         energies = []
-        previous = None          # (energy terms of the previous iterate, its alpha)
+        previous = None          # (data terms, E_Joint, alpha) of the previous iterate
         deformed = self._deform(rest, rotations, translations, influences, weights)
         for _ in range(p.max_iterations):
             stats = [gmm_posteriors(v, x, t, p.omega, p.e_step_neighbours, p.truncation_sigmas)
@@ -174,7 +174,7 @@ class JointEstimation:
             P1 = np.stack([s.P1 if s else np.zeros(M) for s in stats])              # (F, M)
             targets = np.stack([s.targets() if s else np.zeros((M, 3)) for s in stats])
             data = sum(s.nll for s in stats if s) + 0.5 * p.zeta * np.sum((registered - deformed) ** 2)
-            joint_term = self._joint_energy(rotations, translations, joints, anchors, edges)
+            joint_term = self._joint_energy(rotations, translations, joints, anchors, edges, p.eta)
             energies.append(float(data + 0.5 * alpha * joint_term))
             # alpha grows every iteration, so consecutive totals differ even at a fixed point:
             # the convergence test compares the two iterates under the same (previous) alpha.
@@ -217,9 +217,8 @@ class JointEstimation:
         return np.einsum('mk,fmki->fmi', weights, positions)
 
     @staticmethod
-    def _joint_energy(rotations, translations, joints, anchors, edges) -> float:
-        """E_Joint/eta-weighted data part excluded: the sum over frames and edges, plus eta
-        times the data term with eta folded in by the caller's parameters (eta = 1)."""
+    def _joint_energy(rotations, translations, joints, anchors, edges, eta: float) -> float:
+        """E_Joint (m^2): eta sum |c_jk - c~_jk|^2 + sum_t sum |(R_j c + T_j) - (R_k c + T_k)|^2."""
         if not edges:
             return 0.0
         child = np.array([e[0] for e in edges])
@@ -227,7 +226,7 @@ class JointEstimation:
         c = joints[child]
         gap = (np.einsum('feij,ej->fei', rotations[:, child], c) + translations[:, child]
                - np.einsum('feij,ej->fei', rotations[:, parent], c) - translations[:, parent])
-        return float(np.sum(gap ** 2) + np.sum((c - anchors[child]) ** 2))
+        return float(np.sum(gap ** 2) + eta * np.sum((c - anchors[child]) ** 2))
 
     def _update_weights(self, registered, targets, a, positions, k):
         """Per point: the k bones with the smallest single-bone objective, then the exact
