@@ -62,10 +62,7 @@ def render_samba(frames: int, seed: int = 0):
 
 def simulated(subject: str, frames: int):
     seq = generate_sequence(subject, frames, seed=1, progress=False)
-    g = seq.ground_truth
-    gt = GroundTruth(g['stamps'], g['joints'], list(g['joint_names']), g['joint_parents'], g['surface_points'],
-                     float(g['subject_scale_m']), g['surface_bone_ids'], g['bone_transforms'])
-    return seq.clouds, gt
+    return seq.clouds, GroundTruth.from_arrays(seq.ground_truth)
 
 
 def prepare(name: str, frames: int, cache: Path):

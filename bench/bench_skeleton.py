@@ -87,8 +87,7 @@ def main() -> int:
     for subject in args.subjects.split(','):
         seq = generate_sequence(subject, args.frames, seed=args.seed, progress=False)
         g = seq.ground_truth
-        gt = GroundTruth(g['stamps'], g['joints'], list(g['joint_names']), g['joint_parents'], None,
-                         float(g['subject_scale_m']))
+        gt = GroundTruth.from_arrays(g)
         pipeline = SkeletonPipeline()
         started = time.perf_counter()
         registered = pipeline.register(c.reshape(-1, 3) for c in seq.clouds)

@@ -61,13 +61,18 @@ class GroundTruth:
             data = np.load(path, allow_pickle=False)
         except Exception as error:
             raise EvaluationError(f'cannot read ground truth {path}: {error}') from error
+        return cls.from_arrays(data, str(path))
+
+    @classmethod
+    def from_arrays(cls, data, source: str = 'ground truth') -> 'GroundTruth':
+        """From the arrays of a gt.npz (a mapping, e.g. SimulatedSequence.ground_truth)."""
         missing = [k for k in ('stamps', 'joints', 'joint_names', 'joint_parents') if k not in data]
         if missing:
-            raise EvaluationError(f'ground truth {path} lacks {", ".join(missing)}')
+            raise EvaluationError(f'ground truth {source} lacks {", ".join(missing)}')
         joints = np.asarray(data['joints'], dtype=np.float64)
         stamps = np.asarray(data['stamps'], dtype=np.float64)
         if joints.ndim != 3 or joints.shape[2] != 3 or joints.shape[0] != stamps.shape[0]:
-            raise EvaluationError(f'ground truth {path}: joints must be (F, G, 3) with F stamps')
+            raise EvaluationError(f'ground truth {source}: joints must be (F, G, 3) with F stamps')
         surface = np.asarray(data['surface_points'], dtype=np.float64) if 'surface_points' in data else None
         scale = float(data['subject_scale_m']) if 'subject_scale_m' in data else \
             float(np.linalg.norm(np.ptp(joints[0], axis=0)))

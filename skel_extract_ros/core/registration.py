@@ -220,7 +220,8 @@ class NonRigidRegistration:
         edges = graph.edges
         self._rest_offsets = graph.rest_points[:, None, :] - g[graph.point_nodes]   # (M, k, 3) a_mj
         self._batches = []
-        for nodes in graph.colors:
+        # The colour batches serve only the paper's node-by-node M-step.
+        for nodes in (graph.colors if self.params.m_step == 'per_node' else []):
             local = np.full(n_nodes, -1)
             local[nodes] = np.arange(len(nodes))
             pairs = np.flatnonzero(local[pair_node] >= 0)
@@ -252,7 +253,11 @@ class NonRigidRegistration:
         self._edge_offsets = g[edges[:, 1]] - g[edges[:, 0]]
         # Translation block: the J x J system's sparsity pattern is fixed; only the data
         # weights change, so each iteration sums its entries into precomputed CSC slots.
-        laplacian = self._laplacian_matrix(edges, n_nodes).tocoo()
+        incidence = sparse.csr_matrix(
+            (np.concatenate([np.ones(len(edges)), -np.ones(len(edges))]),
+             (np.tile(np.arange(len(edges)), 2), np.concatenate([edges[:, 0], edges[:, 1]]))),
+            shape=(len(edges), n_nodes))                      # +1 at j, -1 at k for edge (j, k)
+        laplacian = (incidence.T @ incidence).tocoo()
         rows = np.concatenate([np.repeat(graph.point_nodes, k, axis=1).ravel(), laplacian.row, np.arange(n_nodes)])
         cols = np.concatenate([np.tile(graph.point_nodes, (1, k)).ravel(), laplacian.col, np.arange(n_nodes)])
         unique_keys, entry_key = np.unique(rows * n_nodes + cols, return_inverse=True)
@@ -266,28 +271,20 @@ class NonRigidRegistration:
         self._laplacian_values = laplacian.data
         self._pair_outer = (graph.point_weights[:, :, None] * graph.point_weights[:, None, :]).reshape(M, -1)
         self._blend = sparse.csr_matrix((pair_weight, (pair_point, pair_node)), shape=(M, n_nodes))
-        self._incidence = self._incidence_matrix(edges, n_nodes)
+        self._incidence = incidence
 
-    @staticmethod
-    def _incidence_matrix(edges: np.ndarray, n_nodes: int) -> sparse.csr_matrix:
-        """(E, J) with +1 at column j and -1 at column k for edge (j, k)."""
-        return sparse.csr_matrix(
-            (np.concatenate([np.ones(len(edges)), -np.ones(len(edges))]),
-             (np.tile(np.arange(len(edges)), 2), np.concatenate([edges[:, 0], edges[:, 1]]))),
-            shape=(len(edges), n_nodes))
+    def _rotated_offsets(self, rotations: np.ndarray) -> np.ndarray:
+        """(M, k, 3) R_j (q_m - g_j) + g_j for every point and carrying node."""
+        nodes = self.graph.point_nodes
+        return np.einsum('mkij,mkj->mki', rotations[nodes], self._rest_offsets) + self.graph.node_positions[nodes]
 
-    @classmethod
-    def _laplacian_matrix(cls, edges: np.ndarray, n_nodes: int) -> sparse.csr_matrix:
-        incidence = cls._incidence_matrix(edges, n_nodes)
-        return (incidence.T @ incidence).tocsr()
-
-    def _contributions(self, rotations: np.ndarray, translations: np.ndarray) -> np.ndarray:
-        """(M, k, 3) per-node parts w_mj [R_j (q_m - g_j) + g_j + T_j] of Eq. (2)."""
-        graph = self.graph
-        nodes = graph.point_nodes
-        moved = np.einsum('mkij,mkj->mki', rotations[nodes], self._rest_offsets) \
-            + graph.node_positions[nodes] + translations[nodes]
-        return graph.point_weights[..., None] * moved
+    def _contributions(self, rotations: np.ndarray, translations: np.ndarray,
+                       rotated: np.ndarray | None = None) -> np.ndarray:
+        """(M, k, 3) per-node parts w_mj [R_j (q_m - g_j) + g_j + T_j] of Eq. (2);
+        `rotated` reuses _rotated_offsets(rotations) when the caller has it."""
+        rotated = self._rotated_offsets(rotations) if rotated is None else rotated
+        moved = rotated + translations[self.graph.point_nodes]
+        return self.graph.point_weights[..., None] * moved
 
     def smooth_energy(self, rotations: np.ndarray, translations: np.ndarray) -> float:
         """E_smooth (m^2) of node transforms."""
@@ -302,15 +299,14 @@ class NonRigidRegistration:
         return gmm_posteriors(observed, points, sigma2, p.omega, p.e_step_neighbours, p.truncation_sigmas)
 
     def _solve_translations(self, estep: GMMStatistics, sigma2: float, rotations: np.ndarray,
-                            translations: np.ndarray) -> None:
-        """Exact minimisation of E over all node translations at once (in place)."""
+                            translations: np.ndarray, rotated: np.ndarray) -> None:
+        """Exact minimisation of E over all node translations at once (in place);
+        rotated: _rotated_offsets(rotations)."""
         p = self.params
         graph = self.graph
         g = graph.node_positions
         n_nodes = graph.n_nodes
         weights = estep.P1 / sigma2
-        rotated = np.einsum('mkij,mkj->mki', rotations[graph.point_nodes], self._rest_offsets) \
-            + g[graph.point_nodes]
         residual_targets = estep.targets() - np.einsum('mk,mki->mi', graph.point_weights, rotated)
         j, k = graph.edges[:, 0], graph.edges[:, 1]
         c = np.einsum('eij,ej->ei', rotations[j], g[k] - g[j]) + g[j] - g[k]
@@ -324,18 +320,17 @@ class NonRigidRegistration:
         translations[:] = spsolve(system, rhs).reshape(-1, 3)
 
     def _update_rotations(self, estep: GMMStatistics, sigma2: float, contributions: np.ndarray,
-                          rotations: np.ndarray, translations: np.ndarray) -> None:
-        """All rotations at once from the separable majoriser (module docstring), in place."""
+                          rotations: np.ndarray, translations: np.ndarray, rotated: np.ndarray) -> None:
+        """All rotations at once from the separable majoriser (module docstring), in place;
+        rotated: _rotated_offsets(rotations)."""
         p = self.params
         graph = self.graph
         g = graph.node_positions
         w = graph.point_weights                                              # (M, k)
         node_centres = g + translations                                      # t_j
         deformed = contributions.sum(axis=1)
-        # z_mj^old = contribution / w; b = z_old + x~ - y'_old, centred on t_j
-        z_old = np.einsum('mkij,mkj->mki', rotations[graph.point_nodes], self._rest_offsets) \
-            + node_centres[graph.point_nodes]
-        b = z_old + (estep.targets() - deformed)[:, None, :] - node_centres[graph.point_nodes]
+        # b - t_j with b = z_mj^old + x~ - y'_old: z_mj^old - t_j = R_j a_mj
+        b = rotated - g[graph.point_nodes] + (estep.targets() - deformed)[:, None, :]
         lam = (estep.P1[:, None] * w / sigma2).ravel()
         a = self._rest_offsets.reshape(-1, 3)
         b = b.reshape(-1, 3)
@@ -400,7 +395,8 @@ class NonRigidRegistration:
             return FrameResult(self.points.copy(), STATUS_EMPTY, float('nan'), 0, 0.0)
 
         rotations, translations = self.rotations.copy(), self.translations.copy()
-        contributions = self._contributions(rotations, translations)
+        rotated = self._rotated_offsets(rotations)
+        contributions = self._contributions(rotations, translations, rotated)
         points = contributions.sum(axis=1)
         sigma2 = p.initial_sigma2
         energies = []
@@ -414,10 +410,11 @@ class NonRigidRegistration:
             if estep.Np <= 1e-9:
                 break
             if p.m_step == 'translations_rotations':
-                self._solve_translations(estep, sigma2, rotations, translations)
-                contributions = self._contributions(rotations, translations)
-                self._update_rotations(estep, sigma2, contributions, rotations, translations)
-                contributions = self._contributions(rotations, translations)
+                self._solve_translations(estep, sigma2, rotations, translations, rotated)
+                contributions = self._contributions(rotations, translations, rotated)
+                self._update_rotations(estep, sigma2, contributions, rotations, translations, rotated)
+                rotated = self._rotated_offsets(rotations)
+                contributions = self._contributions(rotations, translations, rotated)
             else:
                 self._update_nodes(estep, sigma2, contributions, rotations, translations)
             points = contributions.sum(axis=1)
