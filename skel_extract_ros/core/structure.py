@@ -148,12 +148,20 @@ def _majority(labels: np.ndarray, adjacency: sparse.csr_matrix, n_labels: int) -
     return np.asarray(counts.argmax(axis=1)).ravel()
 
 
+def _mean_residual(residual: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """(B, B): entry (i, j) is the mean over the points of bone i of their residual under
+    bone j's transforms (the halves of Eq. 10)."""
+    summer = segment_matrix(labels, residual.shape[1])
+    counts = np.maximum(np.asarray(summer.sum(axis=1)).ravel(), 1)
+    return (summer @ residual) / counts[:, None]
+
+
 def _bone_tree(labels, residual, adjacency, rest):
     """MST over touching clusters with Eq. (10) weights; returns parents (B,)."""
     B = residual.shape[1]
     summer = segment_matrix(labels, B)
     counts = np.asarray(summer.sum(axis=1)).ravel()
-    mean_residual = (summer @ residual) / np.maximum(counts, 1)[:, None]     # (B, B): mean_{m in i} r_mj
+    mean_residual = _mean_residual(residual, labels)
     weights = mean_residual + mean_residual.T                                  # Eq. (10)
     touching = (summer @ adjacency @ summer.T).toarray() > 0
     # Bones that do not touch can only be joined if the touching graph is disconnected:
@@ -175,9 +183,7 @@ def _own_motion(residual: np.ndarray, labels: np.ndarray, parents: np.ndarray, n
     """(B,) RMS displacement (m) per frame of bone b's points and its parent's when each is
     moved with the other's transform (the symmetric swap of Eq. 10); inf for the root."""
     B = len(parents)
-    summer = segment_matrix(labels, B)
-    counts = np.maximum(np.asarray(summer.sum(axis=1)).ravel(), 1)
-    mean_residual = (summer @ residual) / counts[:, None]
+    mean_residual = _mean_residual(residual, labels)
     result = np.full(B, np.inf)
     child = np.flatnonzero(parents >= 0)
     result[child] = np.sqrt((mean_residual[child, parents[child]] + mean_residual[parents[child], child])
