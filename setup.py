@@ -43,6 +43,9 @@ setup(
     entry_points={
         'console_scripts': [
             'skel-extract = skel_extract_ros.cli:main',
+            'registration_node = skel_extract_ros.nodes.registration_node:main',
+            'accumulator_node = skel_extract_ros.nodes.accumulator_node:main',
+            'joint_estimation_node = skel_extract_ros.nodes.joint_estimation_node:main',
         ],
     },
 )

@@ -172,6 +172,45 @@ def _cmd_run(args) -> int:
     return 0
 
 
+def _cmd_replay(args) -> int:
+    from .bag import BagError
+    from .params import ParamsError
+    from .progress import progress_bar
+    from .replay import ReplayError, replay
+
+    bar = None
+
+    def on_published(done, total):
+        nonlocal bar
+        if bar is None:
+            bar = progress_bar(total=total, desc='replay', unit='cloud')
+        bar.update(done - bar.n)
+
+    out = Path(args.out)
+    try:
+        summary = replay(args.input, out, rate=args.rate, topic=args.topic, params_file=args.params,
+                         namespace=args.namespace, progress=on_published)
+    except (BagError, ParamsError, ReplayError) as error:
+        raise UserError(str(error)) from None
+    finally:
+        if bar is not None:
+            bar.close()
+    counts = ', '.join(f'{topic} {n}' for topic, n in sorted(summary['counts'].items()))
+    print(f'replayed {summary["n_frames"]} registered frames ({summary["clouds_per_s"]:.1f} clouds/s sustained); '
+          f'skeleton: {summary["n_joints"]} joints on {summary["n_frames_with_joints"]} frames')
+    print(f'wrote {out / "output.mcap"} ({counts}), {out / "skeleton.json"}, {out / "registered.npz"}, '
+          f'{out / "skeleton.png"}; node logs in {out / "logs"}')
+    for name in ('registration_ms', 'live_joints_ms'):
+        if name in summary:
+            values = summary[name]
+            print(f'latency {name[:-3]}: median {values["median"]:.0f} ms, worst {values["worst"]:.0f} ms '
+                  f'({values["n"]} frames)')
+    failed = {name: code for name, code in summary['exit_codes'].items() if code != 0}
+    if failed:
+        raise UserError(f'node(s) did not shut down cleanly: {failed} (see {out / "logs"})')
+    return 0
+
+
 def _cmd_info(args) -> int:
     from .bag import BagError, read_cloud_frames, select_cloud_topic
     try:
@@ -232,6 +271,16 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument('--params', default=None, help='ROS 2 parameter YAML (params/skel_extract.yaml)')
     run.add_argument('--frames', default=None, help='frame index range a:b (python slice)')
     run.set_defaults(handler=_cmd_run)
+
+    replay_cmd = commands.add_parser('replay', help='run the three ROS nodes over DDS on a bag and record the output')
+    replay_cmd.add_argument('input', help='rosbag2 directory (mcap or sqlite3) or .mcap file')
+    replay_cmd.add_argument('--out', required=True, help='output directory (created if missing)')
+    replay_cmd.add_argument('--rate', type=float, default=1.0,
+                            help='playback speed factor (default 1); 0 = as fast as the nodes take it')
+    replay_cmd.add_argument('--topic', default=None, help='PointCloud2 topic in the bag (default: the only one)')
+    replay_cmd.add_argument('--params', default=None, help='ROS 2 parameter YAML for the nodes')
+    replay_cmd.add_argument('--namespace', default=None, help='run the nodes and topics in this namespace')
+    replay_cmd.set_defaults(handler=_cmd_replay)
 
     info = commands.add_parser('info', help='summarise the point clouds in a bag')
     info.add_argument('input', help='rosbag2 directory or .mcap file')

@@ -50,9 +50,20 @@ def _build(cls, values: dict, where: str):
         raise ParamsError(f'{where}: {error}') from error
 
 
+# Parameters of the nodes themselves (windowing, queues, display), not of the method.
+# Their defaults live here (the method's live in the core dataclasses).
+NODE_ONLY = {'registration_node': {'queue_size': 1, 'input_reliability': 'best_effort'},
+             'accumulator_node': {'window_size': 60, 'sliding': False, 'stride': 30},
+             'joint_estimation_node': {'buffer_size': 300, 'live_sweeps': 2, 'joint_diameter': 0.04}}
+
+
+def _method_values(values: dict, node: str) -> dict:
+    return {k: v for k, v in values.items() if k not in NODE_ONLY[node]}
+
+
 def registration_params_from_dict(values: dict, where: str = 'registration_node') -> tuple:
     """(RegistrationParams, RestPoseParams, PreprocessParams) from a node's parameters."""
-    values = dict(values)
+    values = _method_values(values, 'registration_node')
     preprocess = values.pop('preprocess', {}) or {}
     rest_pose = values.pop('rest_pose', {}) or {}
     return (_build(RegistrationParams, values, where),
@@ -62,12 +73,11 @@ def registration_params_from_dict(values: dict, where: str = 'registration_node'
 
 def structure_params_from_dict(values: dict, where: str = 'accumulator_node') -> StructureParams:
     """StructureParams from the accumulator node's parameters (window keys are the node's)."""
-    values = {k: v for k, v in values.items() if k not in ('window_size', 'sliding', 'stride')}
-    return _build(StructureParams, values, where)
+    return _build(StructureParams, _method_values(values, 'accumulator_node'), where)
 
 
 def joint_params_from_dict(values: dict, where: str = 'joint_estimation_node') -> JointParams:
-    return _build(JointParams, values, where)
+    return _build(JointParams, _method_values(values, 'joint_estimation_node'), where)
 
 
 def pipeline_params(nodes: dict) -> dict:

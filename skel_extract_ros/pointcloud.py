@@ -19,8 +19,9 @@ class CloudDecodeError(ValueError):
     """A PointCloud2 message that cannot be read as x, y, z points; the text says why."""
 
 
-def decode_xyz(msg) -> np.ndarray:
-    """(height * width, 3) float32 points of a PointCloud2, in row-major pixel order.
+def decode_xyz(msg, dtype=np.float32) -> np.ndarray:
+    """(height * width, 3) points (float32 unless `dtype` says otherwise) of a PointCloud2,
+    in row-major pixel order.
 
     Invalid points (NaN / inf) are kept, so an organized cloud keeps its layout; use
     `finite_points` to drop them. Raises CloudDecodeError on missing x/y/z fields,
@@ -34,7 +35,7 @@ def decode_xyz(msg) -> np.ndarray:
         present = ', '.join(fields) or 'none'
         raise CloudDecodeError(f'PointCloud2 has no field {"/".join(missing)} (fields: {present})')
     if n_points == 0:
-        return np.empty((0, 3), dtype=np.float32)
+        return np.empty((0, 3), dtype=dtype)
     endian = '>' if msg.is_bigendian else '<'
     formats, offsets = [], []
     for name in ('x', 'y', 'z'):
@@ -59,12 +60,12 @@ def decode_xyz(msg) -> np.ndarray:
     if buffer.size < needed:
         raise CloudDecodeError(f'PointCloud2 data is truncated: {buffer.size} bytes for '
                                f'{height}x{width} points of {point_step} bytes (need {needed})')
-    dtype = np.dtype({'names': ['x', 'y', 'z'], 'formats': formats, 'offsets': offsets,
+    record_type = np.dtype({'names': ['x', 'y', 'z'], 'formats': formats, 'offsets': offsets,
                       'itemsize': point_step})
     rows = np.lib.stride_tricks.as_strided(buffer, shape=(height, width * point_step),
                                            strides=(row_step, 1))
-    records = np.ascontiguousarray(rows).view(dtype).reshape(-1)
-    points = np.empty((n_points, 3), dtype=np.float32)
+    records = np.ascontiguousarray(rows).view(record_type).reshape(-1)
+    points = np.empty((n_points, 3), dtype=dtype)
     points[:, 0], points[:, 1], points[:, 2] = records['x'], records['y'], records['z']
     return points
 

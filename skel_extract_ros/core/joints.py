@@ -185,9 +185,9 @@ class JointEstimation:
                     break
             previous = (data, joint_term, alpha)
             a = P1 / tau[:, None]                                                    # (F, M)
-            positions = self._bone_positions(rest, rotations, translations)
+            positions = self.bone_positions(rest, rotations, translations)
             influences, weights = self._update_weights(registered, targets, a, positions, k)
-            self._update_bones(rest, registered, targets, a, rotations, translations, influences, weights,
+            self.update_bones(rest, registered, targets, a, rotations, translations, influences, weights,
                                joints, edges, alpha, positions)
             joints = solve_joints(rotations, translations, parents, anchors, p.eta)
             deformed = self._deform(rest, rotations, translations, influences, weights)
@@ -198,7 +198,7 @@ class JointEstimation:
 
     # ------------------------------------------------------------------------------------
     @staticmethod
-    def _bone_positions(rest, rotations, translations) -> np.ndarray:
+    def bone_positions(rest, rotations, translations) -> np.ndarray:
         """(F, B, M, 3) every rest point moved by every bone: R_j^t q_m + T_j^t."""
         F, B = rotations.shape[:2]
         # one GEMM (M x 3) @ (3 x F*B*3) instead of F*B tiny matrix products
@@ -213,7 +213,7 @@ class JointEstimation:
     @classmethod
     def _deform(cls, rest, rotations, translations, influences, weights) -> np.ndarray:
         """Eq. (8): (F, M, 3) LBS positions."""
-        positions = cls._gather(cls._bone_positions(rest, rotations, translations), influences)
+        positions = cls._gather(cls.bone_positions(rest, rotations, translations), influences)
         return np.einsum('mk,fmki->fmi', weights, positions)
 
     @staticmethod
@@ -244,7 +244,7 @@ class JointEstimation:
         h = (weighted @ z.transpose(1, 0, 2).reshape(M, F * 3, 1))[..., 0]
         return influences, simplex_least_squares(G, h)
 
-    def _update_bones(self, rest, registered, targets, a, rotations, translations, influences, weights,
+    def update_bones(self, rest, registered, targets, a, rotations, translations, influences, weights,
                       joints, edges, alpha, positions) -> None:
         """Eq. (13)-(15), bone after bone, every frame at once (in place); positions:
         (F, B, M, 3) bone positions for the current transforms."""

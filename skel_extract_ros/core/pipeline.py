@@ -14,7 +14,7 @@ import numpy as np
 
 from .joints import JointEstimate, JointEstimation, JointParams
 from .preprocess import PreprocessParams
-from .registration import STATUS_EMPTY, RegistrationParams
+from .registration import STATUS_OK, RegistrationParams
 from .rest_pose import RestPoseParams
 from .sequence import SequenceRegistration
 from .skeleton_model import SkeletonModel
@@ -24,7 +24,7 @@ from .structure import SkeletalStructure, StructureParams, extract_structure
 @dataclass
 class PipelineResult:
     """registered: (F, M, 3); statuses: (F,); frames: indices of the frames with a skeleton
-    (those from the rest-pose frame on); step2_positions / joint_positions: (F', J, 3) joint
+    (those registered with status ok); step2_positions / joint_positions: (F', J, 3) joint
     positions after Step 2 and after Step 3 for those frames; seconds per step."""
 
     registered: np.ndarray
@@ -57,7 +57,9 @@ class SkeletonPipeline:
         """Steps 2 and 3 on the frames `register` produced (raises StructureError)."""
         reg = self.registration
         statuses = reg.statuses_
-        frames = np.flatnonzero(~((statuses == STATUS_EMPTY) & np.isnan(registered).any(axis=(1, 2))))
+        # only frames the registration fitted: empty and diverged frames repeat the last
+        # good pose, which would weigh that pose twice (the nodes publish only these too)
+        frames = np.flatnonzero(statuses == STATUS_OK)
         window = registered[frames].astype(np.float64)
         rest = reg.rest_pose_.points
         seconds = {'preprocess': reg.times_.preprocess, 'rest_pose': reg.times_.rest_pose,

@@ -32,15 +32,21 @@ class SkeletonModel:
 
     def to_json(self, stamps, positions, frame_id: str) -> dict:
         """The skeleton.json document (DESIGN.md): stamps (F,) s, positions (F, J, 3) m."""
-        positions = np.asarray(positions, dtype=np.float64)
-        frames = [{'stamp': float(stamp),
-                   'positions': [[None if not np.isfinite(v) else round(float(v), 6) for v in joint]
-                                 for joint in frame]}
-                  for stamp, frame in zip(stamps, positions)]
-        return {
-            'frame_id': frame_id,
-            'joint_names': self.joint_names,
-            'parents': [int(p) for p in self.parents],
-            'rest_positions': np.round(self.rest_joints, 6).tolist(),
-            'frames': frames,
-        }
+        return skeleton_document(self.joint_names, self.parents, self.rest_joints, stamps, positions, frame_id)
+
+
+def skeleton_document(joint_names, parents, rest_positions, stamps, positions, frame_id: str) -> dict:
+    """skeleton.json: names (J,), parents (J,), rest_positions (J, 3) m, stamps (F,) s,
+    positions (F, J, 3) m in the input frame (non-finite values become null)."""
+    positions = np.asarray(positions, dtype=np.float64)
+    frames = [{'stamp': float(stamp),
+               'positions': [[None if not np.isfinite(v) else round(float(v), 6) for v in joint]
+                             for joint in frame]}
+              for stamp, frame in zip(stamps, positions)]
+    return {
+        'frame_id': frame_id,
+        'joint_names': list(joint_names),
+        'parents': [int(p) for p in parents],
+        'rest_positions': np.round(np.asarray(rest_positions, dtype=np.float64), 6).tolist(),
+        'frames': frames,
+    }

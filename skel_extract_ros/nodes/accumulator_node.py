@@ -1,0 +1,183 @@
+"""accumulator_node: Step 2 on a window of registered frames.
+
+Subscribes  registered_points, filtered_points (PointCloud2, reliable), paired by stamp
+            rest_points (PointCloud2, transient local): a new rest pose starts a new window
+Publishes   skeleton/structure (std_msgs/String JSON, transient local): bones, bone tree,
+            per-point labels, window stamps (see conversions.structure_document)
+Service     ~/extract (std_srvs/Trigger): extract now from the frames collected so far
+
+Extraction runs on its own thread so the subscriptions keep collecting meanwhile.
+"""
+from __future__ import annotations
+
+import collections
+import json
+import threading
+import time
+
+import numpy as np
+from rclpy.node import Node
+from sensor_msgs.msg import PointCloud2
+from std_msgs.msg import String
+from std_srvs.srv import Trigger
+
+from ..core.structure import StructureError, StructureParams, extract_structure
+from ..params import NODE_ONLY, structure_params_from_dict
+from ..pointcloud import CloudDecodeError, decode_xyz
+from .common import (LATCHED_QOS, STREAM_QOS, ParameterError, StampPairer, ThrottledLog, declare,
+                     declare_dataclass, run_node)
+from .conversions import stamp_ns, structure_document
+
+SECTION = 'accumulator_node'
+
+
+class AccumulatorNode(Node):
+    def __init__(self, **kwargs):
+        super().__init__('accumulator_node', **kwargs)
+        values = declare_dataclass(self, SECTION, StructureParams)
+        for name, default in NODE_ONLY[SECTION].items():
+            values[name] = declare(self, SECTION, name, default)
+        try:
+            self.params = structure_params_from_dict(values)
+        except ValueError as error:
+            raise ParameterError(str(error)) from None
+        self.window_size, self.sliding, self.stride = values['window_size'], values['sliding'], values['stride']
+        self.log = ThrottledLog(self.get_logger())
+        self.structure_pub = self.create_publisher(String, 'skeleton/structure', LATCHED_QOS)
+        self._lock = threading.Lock()
+        self.rest = None                 # (M, 3) float64
+        self.rest_stamp = None
+        self.frame_id = ''
+        self.frames = collections.OrderedDict()      # stamp ns -> (M, 3) float32, paired only
+        self.pairer = StampPairer()      # registered points with their filtered cloud, by stamp
+        self._since_extraction = 0
+        self._extracted_once = False
+        self._busy = False
+        self.extractions = 0
+        self.create_subscription(PointCloud2, 'rest_points', self._on_rest, LATCHED_QOS)
+        self.create_subscription(PointCloud2, 'registered_points', self._on_registered, STREAM_QOS)
+        self.create_subscription(PointCloud2, 'filtered_points', self._on_filtered, STREAM_QOS)
+        self.create_service(Trigger, '~/extract', self._on_extract)
+        mode = f'sliding, every {self.stride} frames' if self.sliding else 'once'
+        self.get_logger().info(f'collecting windows of {self.window_size} frames ({mode})')
+
+    # -- inputs ----------------------------------------------------------------------------
+    def _on_rest(self, msg: PointCloud2) -> None:
+        try:
+            rest = decode_xyz(msg, dtype=np.float64)
+        except CloudDecodeError as error:
+            self.log.warn('rest', f'ignoring rest_points: {error}')
+            return
+        rest_stamp = stamp_ns(msg.header)
+        with self._lock:
+            # frames of the new rest pose may have come in before it (two topics, no order)
+            old = [s for s in self.frames if s < rest_stamp or len(self.frames[s]) != len(rest)]
+            for stamp in old:
+                del self.frames[stamp]
+            self.rest, self.rest_stamp, self.frame_id = rest, rest_stamp, msg.header.frame_id
+            self._since_extraction = len(self.frames)
+            self._extracted_once = False
+        self.get_logger().info(f'new rest pose ({len(rest)} points); window restarted'
+                               + (f', {len(old)} frames of the previous rest pose dropped' if old else ''))
+
+    def _on_filtered(self, msg: PointCloud2) -> None:
+        pair = self.pairer.add(1, stamp_ns(msg.header), True)
+        if pair is not None:
+            self._add(stamp_ns(msg.header), pair[0])
+
+    def _on_registered(self, msg: PointCloud2) -> None:
+        stamp = stamp_ns(msg.header)
+        try:
+            points = decode_xyz(msg)
+        except CloudDecodeError as error:
+            self.log.warn('decode', f'ignoring registered_points: {error}')
+            return
+        if self.rest is not None and len(points) != len(self.rest):
+            self.log.warn('size', f'registered_points has {len(points)} points, the rest pose '
+                                  f'{len(self.rest)}: ignored')
+            return
+        pair = self.pairer.add(0, stamp, points)
+        if pair is not None:
+            self._add(stamp, pair[0])
+
+    def _add(self, stamp: int, points: np.ndarray) -> None:
+        with self._lock:
+            if self.rest_stamp is not None and stamp < self.rest_stamp:
+                return   # a late frame of the previous rest pose
+            if self.frames and stamp <= next(reversed(self.frames)):
+                self.log.warn('order', f'registered frame at {stamp * 1e-9:.3f} s is not newer than the '
+                                       'last one: ignored (a new rest pose restarts the window)')
+                return
+            self.frames[stamp] = points
+            while len(self.frames) > self.window_size:
+                self.frames.popitem(last=False)
+            self._since_extraction += 1
+            due = (not self._extracted_once and self._since_extraction >= self.window_size) or \
+                  (self.sliding and self._extracted_once and self._since_extraction >= self.stride)
+        if due:
+            self._start_extraction('window full')
+
+    # -- extraction ------------------------------------------------------------------------
+    def _on_extract(self, _request, response):
+        with self._lock:
+            n, newest, busy = len(self.frames), next(reversed(self.frames), 0), self._busy
+        if busy:   # the running extraction answers the request
+            response.success, response.message = True, 'an extraction is running; its result will be published'
+        elif n < 2 or self.rest is None:
+            response.success = False
+            response.message = (f'only {n} registered frame(s) collected; need 2' if self.rest is not None
+                                else 'no rest_points received yet')
+        else:
+            response.success = self._start_extraction('requested')
+            response.message = f'extracting from {n} frames up to stamp {newest} ns'
+        return response
+
+    def _start_extraction(self, reason: str) -> bool:
+        with self._lock:
+            if self.rest is None:
+                self.log.warn('no_rest', f'{len(self.frames)} registered frames but no rest_points yet '
+                                         '(is the registration_node running in the same namespace?)')
+                return False
+            if self._busy:
+                self.log.warn('busy', f'extraction still running; {reason} trigger skipped '
+                                      f'({len(self.frames)} frames waiting)')
+                return False
+            self._busy = True
+            stamps = list(self.frames)
+            window = np.stack([self.frames[s] for s in stamps])
+            rest, rest_stamp, frame_id = self.rest, self.rest_stamp, self.frame_id
+            self._since_extraction = 0
+            self._extracted_once = True
+        threading.Thread(target=self._extract, args=(rest, rest_stamp, frame_id, stamps, window, reason),
+                         name='structure', daemon=True).start()
+        return True
+
+    def _extract(self, rest, rest_stamp, frame_id, stamps, window, reason) -> None:
+        started = time.perf_counter()
+        try:
+            structure = extract_structure(rest, window, self.params)
+        except StructureError as error:
+            retry = '' if self.sliding else f'; trying again on the next {self.window_size} frames'
+            self.get_logger().warning(f'no skeleton from {len(stamps)} frames: {error}{retry}')
+            with self._lock:
+                self._extracted_once = self.sliding and self._extracted_once
+            return
+        except Exception as error:  # keep serving
+            self.get_logger().error(f'structure extraction failed: {type(error).__name__}: {error}')
+            return
+        finally:
+            with self._lock:
+                self._busy = False
+        document = structure_document(structure, rest_stamp, stamps, frame_id)
+        self.structure_pub.publish(String(data=json.dumps(document)))
+        self.extractions += 1
+        self.get_logger().info(f'skeletal structure ({reason}): {structure.n_bones} bones from '
+                               f'{len(stamps)} frames in {time.perf_counter() - started:.1f} s')
+
+
+def main(args=None) -> int:
+    return run_node(AccumulatorNode, args)
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

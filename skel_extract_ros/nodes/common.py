@@ -1,0 +1,158 @@
+"""What the three nodes share: QoS profiles, parameter declaration from the core
+dataclasses, throttled warnings that count what they suppressed, and the main() idiom."""
+from __future__ import annotations
+
+import collections
+import dataclasses
+import threading
+import time
+import typing
+
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
+from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
+from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
+                       qos_profile_sensor_data)
+
+from ..parameter_docs import describe
+
+# Depth drivers publish best effort or reliable; a best-effort reader matches both.
+SENSOR_QOS = qos_profile_sensor_data
+# Between our nodes nothing may be lost: a window frame that vanished would silently
+# change the skeleton. Deep enough for a 60-frame window burst during replay.
+STREAM_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=200, reliability=ReliabilityPolicy.RELIABLE,
+                        durability=DurabilityPolicy.VOLATILE)
+# Latched: a node (or RViz) that starts later still gets the current skeleton / rest pose.
+LATCHED_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+class ParameterError(ValueError):
+    """A parameter value the node cannot run with (the message names it)."""
+
+
+def _ros_default(field: dataclasses.Field, hint):
+    """(value, descriptor type, dynamic) of a dataclass field as a ROS parameter; None
+    defaults become 0.0 ('automatic') or [] ('unset')."""
+    default = field.default
+    args = typing.get_args(hint)
+    if default is None:
+        if float in args:
+            return 0.0, ParameterType.PARAMETER_DOUBLE, False
+        return [], ParameterType.PARAMETER_DOUBLE_ARRAY, True
+    if isinstance(default, bool):
+        return default, ParameterType.PARAMETER_BOOL, False
+    if isinstance(default, int):
+        return default, ParameterType.PARAMETER_INTEGER, False
+    if isinstance(default, float):
+        return default, ParameterType.PARAMETER_DOUBLE, False
+    if isinstance(default, str):
+        return default, ParameterType.PARAMETER_STRING, False
+    if isinstance(default, tuple):
+        return [float(v) for v in default], ParameterType.PARAMETER_DOUBLE_ARRAY, False
+    raise TypeError(f'no ROS parameter type for {field.name} = {default!r}')
+
+
+def declare_dataclass(node, section: str, cls, prefix: str = '') -> dict:
+    """Declare every field of `cls` as `<prefix><name>` (descriptions and ranges from
+    parameter_docs[section]) and return {name: value} with the values the node was started with."""
+    hints = typing.get_type_hints(cls)
+    values = {}
+    for field in dataclasses.fields(cls):
+        name = prefix + field.name
+        value, kind, dynamic = _ros_default(field, hints[field.name])
+        values[field.name] = declare(node, section, name, value, kind, dynamic)
+    return values
+
+
+def declare(node, section: str, name: str, value, kind=None, dynamic: bool = False):
+    """Declare one documented parameter; returns its value. A value of the wrong type or
+    out of range raises ParameterError with the name and what is expected."""
+    description, low, high = describe(section, name)
+    descriptor = ParameterDescriptor(name=name, description=description, dynamic_typing=dynamic)
+    if kind is not None:
+        descriptor.type = kind
+    if low is not None and isinstance(value, float):
+        descriptor.floating_point_range = [FloatingPointRange(from_value=float(low), to_value=float(high))]
+    elif low is not None and isinstance(value, int) and not isinstance(value, bool):
+        descriptor.integer_range = [IntegerRange(from_value=int(low), to_value=int(high), step=1)]
+    try:
+        return node.declare_parameter(name, value, descriptor).value
+    except (InvalidParameterTypeException, InvalidParameterValueException) as error:
+        raise ParameterError(f'parameter {name}: {error} ({description})') from None
+
+
+class ThrottledLog:
+    """At most one line per `period` s for each kind of problem, with the number of the
+    same problem seen since the last line. rclpy's own throttling keys on the call site
+    and says nothing about how many messages it swallowed, which a user debugging a
+    driver needs to know."""
+
+    def __init__(self, logger, period: float = 5.0):
+        self._logger = logger
+        self._period = period
+        self._last = {}
+        self._suppressed = {}
+        self._lock = threading.Lock()
+
+    def warn(self, kind: str, message: str) -> None:
+        now = time.monotonic()
+        with self._lock:
+            last = self._last.get(kind)
+            if last is not None and now - last < self._period:
+                self._suppressed[kind] = self._suppressed.get(kind, 0) + 1
+                return
+            suppressed = self._suppressed.pop(kind, 0)
+            self._last[kind] = now
+        more = f' ({suppressed} more like this in the last {self._period:.0f} s)' if suppressed else ''
+        self._logger.warning(message + more)
+
+
+def run_node(node_factory, args=None) -> int:
+    """The demo_nodes_py main: spin until Ctrl-C or shutdown, no traceback. Parameter
+    errors end the node with one line and exit code 2."""
+    import sys
+
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = node_factory()
+        rclpy.spin(node)
+    except ParameterError as error:
+        print(f'{sys.argv[0]}: error: {error}', file=sys.stderr)
+        return 2
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+class StampPairer:
+    """Pairs two streams by exact header stamp (ns). The registration node publishes the
+    filtered and the registered cloud of a frame on two topics, and DDS does not order
+    messages across topics, so either may come first; unmatched items are kept for the
+    last `capacity` stamps of each side. Not thread-safe: call from one callback group."""
+
+    def __init__(self, capacity: int = 200):
+        self.capacity = capacity
+        self._sides = (collections.OrderedDict(), collections.OrderedDict())
+
+    def add(self, side: int, stamp: int, value):
+        """Offer `value` on side 0 or 1; returns (value_0, value_1) once both are in."""
+        other = self._sides[1 - side].pop(stamp, None)
+        if other is not None:
+            return (value, other) if side == 0 else (other, value)
+        waiting = self._sides[side]
+        waiting[stamp] = value
+        while len(waiting) > self.capacity:
+            waiting.popitem(last=False)
+        return None
+
+    def clear(self) -> None:
+        for waiting in self._sides:
+            waiting.clear()

@@ -1,0 +1,135 @@
+"""Messages <-> numpy and JSON for the nodes: PointCloud2, PoseArray, MarkerArray and the
+std_msgs/String JSON documents (skeleton/structure, skeleton/description).
+
+The JSON documents are plain dicts so that tests and `skel-extract replay` can read them
+without ROS. Stamps travel as integer nanoseconds (a float second loses the nanoseconds
+of a 2020s epoch stamp, and the nodes pair frames by exact stamp).
+"""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+from geometry_msgs.msg import Point, Pose, PoseArray
+from sensor_msgs.msg import PointCloud2, PointField
+from std_msgs.msg import ColorRGBA, Header
+from visualization_msgs.msg import Marker, MarkerArray
+
+from ..core.skeleton_model import SkeletonModel
+from ..core.structure import SkeletalStructure
+from ..pointcloud import encode_xyz
+
+STRUCTURE_VERSION = 1
+
+
+def stamp_ns(header) -> int:
+    """Header stamp in integer nanoseconds."""
+    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+
+
+def cloud_message(points: np.ndarray, header: Header, float64: bool = False) -> PointCloud2:
+    """(N, 3) points as an unorganized PointCloud2 with `header`; float64 fields when exact
+    values matter (the rest points, which every downstream step starts from)."""
+    points = np.asarray(points)
+    msg = PointCloud2(header=header)
+    if float64:
+        values = np.ascontiguousarray(points, dtype='<f8').reshape(-1, 3)
+        msg.height, msg.width, msg.point_step = 1, len(values), 24
+        msg.row_step, msg.is_dense = 24 * len(values), bool(np.isfinite(values).all())
+        msg.fields = [PointField(name=n, offset=8 * i, datatype=PointField.FLOAT64, count=1)
+                      for i, n in enumerate('xyz')]
+        msg.data = values.tobytes()
+    else:
+        height, width, point_step, row_step, data, is_dense = encode_xyz(points.reshape(-1, 3), 16)
+        msg.height, msg.width, msg.point_step, msg.row_step, msg.is_dense = height, width, point_step, row_step, is_dense
+        msg.fields = [PointField(name=n, offset=4 * i, datatype=PointField.FLOAT32, count=1)
+                      for i, n in enumerate('xyz')]
+        msg.data = data
+    msg.is_bigendian = False
+    return msg
+
+
+def structure_document(structure: SkeletalStructure, rest_stamp_ns: int, window_stamps_ns, frame_id: str) -> dict:
+    """The skeleton/structure JSON: bones, bone tree, per-point labels, window stamps."""
+    return {
+        'version': STRUCTURE_VERSION,
+        'frame_id': frame_id,
+        'rest_stamp_ns': int(rest_stamp_ns),
+        'window_stamps_ns': [int(s) for s in window_stamps_ns],
+        'n_points': int(len(structure.labels)),
+        'n_bones': int(structure.n_bones),
+        'parents': [int(p) for p in structure.parents],
+        'labels': [int(label) for label in structure.labels],
+        'joints': structure.joints.tolist(),
+        'boundary_centroids': structure.boundary_centroids.tolist(),
+    }
+
+
+def parse_structure(text: str) -> dict:
+    """Validate a skeleton/structure JSON; labels/parents as int arrays, joints (B, 3).
+    Raises ValueError with the reason."""
+    try:
+        document = json.loads(text)
+        if document.get('version') != STRUCTURE_VERSION:
+            raise ValueError(f'unsupported structure version {document.get("version")!r}')
+        document['parents'] = np.asarray(document['parents'], dtype=np.int64)
+        document['labels'] = np.asarray(document['labels'], dtype=np.int64)
+        document['joints'] = np.asarray(document['joints'], dtype=np.float64).reshape(-1, 3)
+        document['boundary_centroids'] = np.asarray(document['boundary_centroids'], dtype=np.float64).reshape(-1, 3)
+        B = len(document['parents'])
+        if len(document['joints']) != B or len(document['boundary_centroids']) != B:
+            raise ValueError('joints / boundary_centroids do not match the bone count')
+        if len(document['labels']) and (document['labels'].min() < 0 or document['labels'].max() >= B):
+            raise ValueError('labels out of range')
+        return document
+    except (KeyError, TypeError, json.JSONDecodeError) as error:
+        raise ValueError(f'malformed skeleton/structure message: {error}') from None
+
+
+def description_document(model: SkeletonModel, frame_id: str, window_stamps_ns) -> dict:
+    """The skeleton/description JSON: joint_names, parents, rest_positions (+ frame, window)."""
+    return {'frame_id': frame_id, 'joint_names': model.joint_names,
+            'parents': [int(p) for p in model.parents],
+            'rest_positions': np.round(model.rest_joints, 6).tolist(),
+            'window_stamps_ns': [int(s) for s in window_stamps_ns]}
+
+
+def pose_array(positions: np.ndarray, header: Header) -> PoseArray:
+    """One pose per joint (identity orientation), in the input frame."""
+    msg = PoseArray(header=header)
+    msg.poses = [Pose() for _ in range(len(positions))]
+    for pose, (x, y, z) in zip(msg.poses, np.asarray(positions, dtype=float)):
+        pose.position.x, pose.position.y, pose.position.z = float(x), float(y), float(z)
+        pose.orientation.w = 1.0
+    return msg
+
+
+def pose_array_positions(msg) -> np.ndarray:
+    """(J, 3) joint positions of a PoseArray."""
+    return np.array([[p.position.x, p.position.y, p.position.z] for p in msg.poses], dtype=np.float64).reshape(-1, 3)
+
+
+def skeleton_markers(positions: np.ndarray, parents, header: Header, joint_diameter: float = 0.04) -> MarkerArray:
+    """A SPHERE per joint (id = joint index, namespace 'joints') and one LINE_LIST of the
+    bones (namespace 'bones', id 0)."""
+    positions = np.asarray(positions, dtype=float)
+    markers = MarkerArray()
+    for index, (x, y, z) in enumerate(positions):
+        sphere = Marker(header=header, ns='joints', id=index, type=Marker.SPHERE, action=Marker.ADD)
+        sphere.pose.position.x, sphere.pose.position.y, sphere.pose.position.z = float(x), float(y), float(z)
+        sphere.pose.orientation.w = 1.0
+        sphere.scale.x = sphere.scale.y = sphere.scale.z = float(joint_diameter)
+        sphere.color = ColorRGBA(r=1.0, g=0.3, b=0.1, a=1.0)
+        markers.markers.append(sphere)
+    bones = Marker(header=header, ns='bones', id=0, type=Marker.LINE_LIST, action=Marker.ADD)
+    bones.pose.orientation.w = 1.0
+    bones.scale.x = float(joint_diameter) / 4.0
+    bones.color = ColorRGBA(r=0.1, g=0.6, b=1.0, a=1.0)
+    for child, parent in enumerate(parents):
+        if parent >= 0:
+            bones.points.append(Point(x=float(positions[parent, 0]), y=float(positions[parent, 1]),
+                                      z=float(positions[parent, 2])))
+            bones.points.append(Point(x=float(positions[child, 0]), y=float(positions[child, 1]),
+                                      z=float(positions[child, 2])))
+    markers.markers.append(bones)
+    return markers

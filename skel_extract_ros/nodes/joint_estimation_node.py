@@ -1,0 +1,244 @@
+"""joint_estimation_node: Step 3 (Alg. 2) on each structure's window, then live joints.
+
+Subscribes  skeleton/structure (std_msgs/String JSON, transient local)
+            registered_points, filtered_points (PointCloud2, reliable), rest_points (transient local)
+Publishes   skeleton/description (std_msgs/String JSON, transient local): joint_names,
+            parents, rest_positions, frame_id, window_stamps_ns
+            skeleton/joints  (geometry_msgs/PoseArray, one pose per joint, input header)
+            skeleton/markers (visualization_msgs/MarkerArray: SPHERE per joint, id = joint
+            index; LINE_LIST of bones; input header)
+
+On a structure: Alg. 2 on the window's frames (found by stamp in a buffer of
+`buffer_size` frames) on its own thread, then joints and markers for every window frame.
+After that, every new registered frame gets the learned LBS model fitted to it
+(core.live) and its joints published: frames that arrived while Alg. 2 ran are caught
+up, none is skipped.
+"""
+from __future__ import annotations
+
+import collections
+import json
+import threading
+import time
+
+import numpy as np
+from geometry_msgs.msg import PoseArray
+from rclpy.node import Node
+from sensor_msgs.msg import PointCloud2
+from std_msgs.msg import String
+from visualization_msgs.msg import MarkerArray
+
+from ..core.joints import JointEstimation, JointParams
+from ..core.live import LiveJointTracker
+from ..core.rigid import fit_rigid_segments
+from ..core.skeleton_model import SkeletonModel
+from ..core.structure import SkeletalStructure
+from ..params import NODE_ONLY, joint_params_from_dict
+from ..pointcloud import CloudDecodeError, decode_xyz
+from .common import (LATCHED_QOS, STREAM_QOS, ParameterError, StampPairer, ThrottledLog, declare,
+                     declare_dataclass, run_node)
+from .conversions import description_document, parse_structure, pose_array, skeleton_markers, stamp_ns
+
+SECTION = 'joint_estimation_node'
+
+
+class JointEstimationNode(Node):
+    def __init__(self, **kwargs):
+        super().__init__('joint_estimation_node', **kwargs)
+        values = declare_dataclass(self, SECTION, JointParams)
+        for name, default in NODE_ONLY[SECTION].items():
+            values[name] = declare(self, SECTION, name, default)
+        try:
+            self.params = joint_params_from_dict(values)
+        except ValueError as error:
+            raise ParameterError(str(error)) from None
+        self.buffer_size, self.live_sweeps = values['buffer_size'], values['live_sweeps']
+        self.joint_diameter = values['joint_diameter']
+        self.log = ThrottledLog(self.get_logger())
+        self.description_pub = self.create_publisher(String, 'skeleton/description', LATCHED_QOS)
+        self.joints_pub = self.create_publisher(PoseArray, 'skeleton/joints', STREAM_QOS)
+        self.markers_pub = self.create_publisher(MarkerArray, 'skeleton/markers', STREAM_QOS)
+        self._lock = threading.Lock()
+        self.rest, self.rest_stamp = None, None
+        self.buffer = collections.OrderedDict()   # stamp ns -> (header, registered (M, 3), filtered (N, 3))
+        self.pairer = StampPairer()
+        self.registered_only = collections.OrderedDict()  # stamp -> (header, registered): live input
+        self.tracker = None
+        self.model_parents = None
+        self.last_published = None           # stamp of the newest frame with joints published
+        self._busy = False
+        self._pending_structure = None
+        self._early_structure = None
+        self.live_ms = collections.deque(maxlen=10_000)
+        self.create_subscription(PointCloud2, 'rest_points', self._on_rest, LATCHED_QOS)
+        self.create_subscription(PointCloud2, 'registered_points', self._on_registered, STREAM_QOS)
+        self.create_subscription(PointCloud2, 'filtered_points', self._on_filtered, STREAM_QOS)
+        self.create_subscription(String, 'skeleton/structure', self._on_structure, LATCHED_QOS)
+        self.get_logger().info('waiting for skeleton/structure')
+
+    # -- inputs ----------------------------------------------------------------------------
+    def _on_rest(self, msg: PointCloud2) -> None:
+        try:
+            rest = decode_xyz(msg, dtype=np.float64)
+        except CloudDecodeError as error:
+            self.log.warn('rest', f'ignoring rest_points: {error}')
+            return
+        rest_stamp = stamp_ns(msg.header)
+        with self._lock:
+            self.rest, self.rest_stamp = rest, rest_stamp
+            # frames of this rest pose may have come in before it (two topics, no order)
+            for frames in (self.buffer, self.registered_only):
+                for stamp in [s for s in frames if s < rest_stamp]:
+                    del frames[stamp]
+            had_model = self.tracker is not None
+            self.tracker, self.last_published = None, None
+            early, self._early_structure = self._early_structure, None
+        if had_model:
+            self.get_logger().info('new rest pose: live joints pause until the next skeleton/structure')
+        if early is not None:
+            self._on_structure(early)
+
+    def _decode(self, msg, what: str):
+        try:
+            return decode_xyz(msg)
+        except CloudDecodeError as error:
+            self.log.warn(what, f'ignoring {what}: {error}')
+            return None
+
+    def _on_filtered(self, msg: PointCloud2) -> None:
+        points = self._decode(msg, 'filtered_points')
+        if points is not None:
+            self._pair(1, msg.header, points)
+
+    def _on_registered(self, msg: PointCloud2) -> None:
+        points = self._decode(msg, 'registered_points')
+        if points is None:
+            return
+        if self.rest is not None and len(points) != len(self.rest):
+            self.log.warn('size', f'registered_points has {len(points)} points, the rest pose '
+                                  f'{len(self.rest)}: ignored')
+            return
+        stamp = stamp_ns(msg.header)
+        with self._lock:
+            self.registered_only[stamp] = (msg.header, points)
+            while len(self.registered_only) > self.buffer_size:
+                self.registered_only.popitem(last=False)
+        self._pair(0, msg.header, points)
+        self._publish_live()
+
+    def _pair(self, side: int, header, points) -> None:
+        stamp = stamp_ns(header)
+        with self._lock:
+            pair = self.pairer.add(side, stamp, (header, points))
+            if pair is None:
+                return
+            (header, registered), (_, filtered) = pair
+            self.buffer[stamp] = (header, registered, filtered)
+            while len(self.buffer) > self.buffer_size:
+                self.buffer.popitem(last=False)
+
+    # -- Alg. 2 on a window ------------------------------------------------------------------
+    def _on_structure(self, msg: String) -> None:
+        try:
+            document = parse_structure(msg.data)
+        except ValueError as error:
+            self.log.warn('structure', f'ignoring skeleton/structure: {error}')
+            return
+        with self._lock:
+            if self.rest_stamp is None or document['rest_stamp_ns'] > self.rest_stamp:
+                # its rest pose is still on the way (latched topics arrive in any order)
+                self._early_structure = msg
+                return
+            if document['rest_stamp_ns'] != self.rest_stamp:
+                self.log.warn('structure', 'skeleton/structure is for an older rest pose than the '
+                                           'current rest_points: ignored')
+                return
+            if len(document['labels']) != len(self.rest):
+                self.log.warn('structure', f'skeleton/structure labels {len(document["labels"])} points, '
+                                           f'the rest pose has {len(self.rest)}: ignored')
+                return
+            wanted = document['window_stamps_ns']
+            found = [s for s in wanted if s in self.buffer]
+            if len(found) < len(wanted):
+                self.get_logger().warning(f'{len(wanted) - len(found)} of the {len(wanted)} window frames '
+                                          f'are not in the buffer (buffer_size {self.buffer_size}); '
+                                          f'estimating joints on the {len(found)} available')
+            if len(found) < 2:
+                self.get_logger().warning('fewer than 2 window frames available: structure ignored')
+                return
+            if self._busy:
+                # the newest structure wins; it runs when the current estimation ends
+                self._pending_structure = msg
+                self.get_logger().info('joint estimation running: the new structure is queued')
+                return
+            self._busy = True
+            frames = [self.buffer[s] for s in found]
+            rest = self.rest
+        threading.Thread(target=self._estimate, args=(document, rest, found, frames), name='joints',
+                         daemon=True).start()
+
+    def _estimate(self, document, rest, stamps, frames) -> None:
+        started = time.perf_counter()
+        try:
+            registered = np.stack([f[1] for f in frames]).astype(np.float64)
+            observed = [f[2] for f in frames]
+            labels, parents = document['labels'], document['parents']
+            rotations, translations = fit_rigid_segments(rest, registered, labels, len(parents))
+            structure = SkeletalStructure(labels, parents, rotations, translations, document['joints'],
+                                          document['boundary_centroids'])
+            estimate = JointEstimation(self.params).fit(rest, registered, observed, structure)
+            model = SkeletonModel(rest, labels, estimate.parents, estimate.joints, estimate.influences,
+                                  estimate.weights)
+            tracker = LiveJointTracker(model, self.params, self.live_sweeps)
+        except Exception as error:  # keep serving with the previous model
+            self.get_logger().error(f'joint estimation failed: {type(error).__name__}: {error}')
+            self._finish_estimation()
+            return
+        description = description_document(model, document['frame_id'], stamps)
+        self.description_pub.publish(String(data=json.dumps(description)))
+        for (header, _, _), positions in zip(frames, estimate.joint_trajectories()):
+            self._publish_joints(header, positions, model.parents)
+        with self._lock:
+            self.tracker, self.model_parents = tracker, model.parents
+            # sliding windows: frames after this window may have live joints from the
+            # previous model already; they are not published twice
+            self.last_published = max(stamps[-1], self.last_published or stamps[-1])
+        self.get_logger().info(f'{model.n_joints} joints from {len(stamps)} frames in '
+                               f'{time.perf_counter() - started:.1f} s; publishing live joints')
+        self._publish_live()
+        self._finish_estimation()
+
+    def _finish_estimation(self) -> None:
+        with self._lock:
+            self._busy = False
+            pending, self._pending_structure = self._pending_structure, None
+        if pending is not None:
+            self._on_structure(pending)
+
+    # -- live --------------------------------------------------------------------------------
+    def _publish_live(self) -> None:
+        """Joints for every registered frame newer than the last published one."""
+        with self._lock:
+            if self.tracker is None:
+                return
+            todo = [(s, v) for s, v in self.registered_only.items() if s > self.last_published]
+            tracker, parents = self.tracker, self.model_parents
+            if todo:
+                self.last_published = todo[-1][0]
+        for _stamp, (header, registered) in todo:
+            started = time.perf_counter()
+            positions = tracker.track(registered)
+            self.live_ms.append(1000.0 * (time.perf_counter() - started))
+            self._publish_joints(header, positions, parents)
+
+    def _publish_joints(self, header, positions, parents) -> None:
+        self.joints_pub.publish(pose_array(positions, header))
+        self.markers_pub.publish(skeleton_markers(positions, parents, header, self.joint_diameter))
+
+
+def main(args=None) -> int:
+    return run_node(JointEstimationNode, args)
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

@@ -1,0 +1,193 @@
+"""registration_node: Steps 0-1 live. Rest pose from the first good cloud, then every
+new cloud registered from the previous one (Alg. 1).
+
+Subscribes  points            sensor_msgs/PointCloud2  sensor-data QoS (best effort; reliable
+                              with input_reliability:=reliable)
+Publishes   registered_points PointCloud2 (M points, fixed order, input header; ok frames only)
+            filtered_points   PointCloud2 (the preprocessed cloud, input header; every decodable cloud)
+            rest_points       PointCloud2 (float64, transient local; the rest pose Q, header of its cloud)
+Service     ~/reset           std_srvs/Trigger: forget the rest pose, build a new one
+
+Registration takes longer than a camera frame, so clouds are taken off the executor by
+a cheap callback into a queue of `queue_size` and processed by one worker thread; when
+the queue is full the oldest cloud is skipped, counted and reported.
+"""
+from __future__ import annotations
+
+import collections
+import threading
+import time
+
+import numpy as np
+from rclpy.node import Node
+from sensor_msgs.msg import PointCloud2
+from std_srvs.srv import Trigger
+
+from ..core.preprocess import PreprocessParams, Preprocessor
+from ..core.registration import STATUS_OK, NonRigidRegistration, RegistrationParams
+from ..core.rest_pose import RestPose, RestPoseError, RestPoseParams
+from ..params import NODE_ONLY, registration_params_from_dict
+from ..pointcloud import CloudDecodeError, decode_xyz
+from .common import (LATCHED_QOS, SENSOR_QOS, STREAM_QOS, ParameterError, ThrottledLog, declare,
+                     declare_dataclass, run_node)
+from .conversions import cloud_message, stamp_ns
+
+SECTION = 'registration_node'
+
+
+class RegistrationNode(Node):
+    def __init__(self, **kwargs):
+        super().__init__('registration_node', **kwargs)
+        values = declare_dataclass(self, SECTION, RegistrationParams)
+        values['rest_pose'] = declare_dataclass(self, SECTION, RestPoseParams, 'rest_pose.')
+        values['preprocess'] = declare_dataclass(self, SECTION, PreprocessParams, 'preprocess.')
+        self.queue_size = declare(self, SECTION, 'queue_size', NODE_ONLY[SECTION]['queue_size'])
+        reliability = declare(self, SECTION, 'input_reliability', NODE_ONLY[SECTION]['input_reliability'])
+        if reliability not in ('best_effort', 'reliable'):
+            raise ParameterError(f"parameter input_reliability must be 'best_effort' or 'reliable', "
+                                 f'got {reliability!r}')
+        try:
+            self.params, self.rest_params, self.preprocess_params = registration_params_from_dict(values)
+        except ValueError as error:
+            raise ParameterError(str(error)) from None
+        self.log = ThrottledLog(self.get_logger())
+        self.registered_pub = self.create_publisher(PointCloud2, 'registered_points', STREAM_QOS)
+        self.filtered_pub = self.create_publisher(PointCloud2, 'filtered_points', STREAM_QOS)
+        self.rest_pub = self.create_publisher(PointCloud2, 'rest_points', LATCHED_QOS)
+        self.create_service(Trigger, '~/reset', self._on_reset)
+        self._queue = collections.deque()
+        self._wake = threading.Condition()
+        self._stopping = False
+        self._reset_requested = False
+        self.skipped = 0
+        self.latencies_ms = collections.deque(maxlen=10_000)
+        self.processed = 0
+        self._start_over()
+        self._worker = threading.Thread(target=self._work, name='registration', daemon=True)
+        self._worker.start()
+        # best effort matches every driver; reliable (for bag replay) never loses a
+        # fragmented megabyte cloud to a full socket buffer, but needs a reliable publisher
+        self.create_subscription(PointCloud2, 'points', self._on_cloud,
+                                 SENSOR_QOS if reliability == 'best_effort' else STREAM_QOS)
+        self.get_logger().info(f'waiting for clouds on {self.resolve_topic_name("points")} '
+                               f'(M = {self.rest_params.n_points} registered points)')
+
+    # -- executor side: cheap ------------------------------------------------------------
+    def _on_cloud(self, msg: PointCloud2) -> None:
+        with self._wake:
+            self._queue.append((time.perf_counter(), msg))
+            dropped = 0
+            while len(self._queue) > self.queue_size:
+                self._queue.popleft()
+                dropped += 1
+            self.skipped += dropped
+            self._wake.notify()
+        if dropped:
+            self.log.warn('skipped', f'registration is slower than the input: {self.skipped} cloud(s) '
+                                     f'skipped so far (queue_size {self.queue_size}; median '
+                                     f'{self._median_ms():.0f} ms per frame)')
+
+    def _on_reset(self, _request, response):
+        with self._wake:
+            self._reset_requested = True
+        response.success = True
+        response.message = 'the rest pose will be rebuilt from the next good cloud'
+        self.get_logger().info('reset requested: ' + response.message)
+        return response
+
+    # -- worker side ---------------------------------------------------------------------
+    def _start_over(self) -> None:
+        self.preprocessor = Preprocessor(self.preprocess_params)
+        self.registration = None
+        self.rest_pose = None
+        self.last_stamp = None
+        self.frame_id = None
+
+    def _median_ms(self) -> float:
+        return float(np.median(self.latencies_ms)) if self.latencies_ms else float('nan')
+
+    def _work(self) -> None:
+        while True:
+            with self._wake:
+                while not self._queue and not self._stopping:
+                    self._wake.wait()
+                if self._stopping:
+                    return
+                received, msg = self._queue.popleft()
+                if self._reset_requested:
+                    self._reset_requested = False
+                    self._start_over()
+            try:
+                self._process(msg)
+            except Exception as error:  # never let one bad cloud end the node
+                self.log.warn('failed', f'cloud at {stamp_ns(msg.header) * 1e-9:.3f} s failed: '
+                                        f'{type(error).__name__}: {error}')
+                continue
+            self.latencies_ms.append(1000.0 * (time.perf_counter() - received))
+            self.processed += 1
+            if self.processed % 100 == 0:
+                self.get_logger().info(f'{self.processed} clouds processed, latency median '
+                                       f'{self._median_ms():.0f} ms, worst {max(self.latencies_ms):.0f} ms, '
+                                       f'{self.skipped} skipped')
+
+    def _process(self, msg: PointCloud2) -> None:
+        stamp, frame_id = stamp_ns(msg.header), msg.header.frame_id
+        try:
+            raw = decode_xyz(msg)
+        except CloudDecodeError as error:
+            self.log.warn('decode', f'ignoring a cloud in frame {frame_id!r}: {error}')
+            return
+        if len(raw) > self.preprocess_params.max_input_points:
+            self.log.warn('large', f'cloud of {len(raw)} points: randomly thinned to '
+                                   f'preprocess.max_input_points = {self.preprocess_params.max_input_points}')
+        if self.last_stamp is not None:
+            if stamp == self.last_stamp:
+                self.log.warn('duplicate', f'ignoring a second cloud with stamp {stamp * 1e-9:.3f} s')
+                return
+            if stamp < self.last_stamp:
+                self.get_logger().warning(f'stamps went back by {(self.last_stamp - stamp) * 1e-9:.3f} s '
+                                          '(bag looped or clock reset): starting over with a new rest pose')
+                self._start_over()
+            elif frame_id != self.frame_id:
+                self.get_logger().warning(f'frame_id changed from {self.frame_id!r} to {frame_id!r}: the '
+                                          'registered points would mix coordinate frames; starting over '
+                                          'with a new rest pose')
+                self._start_over()
+        self.last_stamp, self.frame_id = stamp, frame_id
+        observed = self.preprocessor(raw)
+        self.filtered_pub.publish(cloud_message(observed, msg.header))
+        if self.registration is None:
+            if len(observed) < max(100, self.rest_params.n_points // 10):
+                self.log.warn('no_rest', f'no rest pose yet: only {len(observed)} points after preprocessing '
+                                         f'(of {np.isfinite(raw).all(axis=1).sum()} valid); is the subject in view?')
+                return
+            try:
+                self.rest_pose = RestPose.from_points(observed, self.rest_params)
+            except RestPoseError as error:
+                self.log.warn('no_rest', f'no rest pose from this cloud: {error}')
+                return
+            self.registration = NonRigidRegistration(self.rest_pose.points, self.params)
+            self.rest_pub.publish(cloud_message(self.rest_pose.points, msg.header, float64=True))
+            self.get_logger().info(f'rest pose built from the cloud at {stamp * 1e-9:.3f} s '
+                                   f'({len(self.rest_pose.points)} points, frame {frame_id!r})')
+        result = self.registration.register_frame(observed)
+        if result.status != STATUS_OK:
+            self.log.warn('status', f'cloud at {stamp * 1e-9:.3f} s not registered ({result.status}: '
+                                    f'{len(observed)} points after preprocessing); holding the last pose')
+            return
+        self.registered_pub.publish(cloud_message(result.points, msg.header))
+
+    def destroy_node(self):
+        with self._wake:
+            self._stopping = True
+            self._wake.notify()
+        self._worker.join(timeout=10.0)
+        return super().destroy_node()
+
+
+def main(args=None) -> int:
+    return run_node(RegistrationNode, args)
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

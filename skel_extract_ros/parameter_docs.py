@@ -1,0 +1,104 @@
+"""One description (with unit) and valid range for every node parameter.
+
+The nodes put these in their ParameterDescriptors (`ros2 param describe`), and a test
+checks that params/skel_extract.yaml and the README's ROS API section list exactly these
+names, so the three never drift apart. Ranges are (low, high) or (None, None).
+"""
+from __future__ import annotations
+
+INF = 1e300
+_ANY = (None, None)
+
+_REGISTRATION = {
+    'omega': ('weight of the uniform outlier component of the GMM (Eq. 1, 3), in [0, 1)', (0.0, 0.999)),
+    'beta_smooth': ('weight of E_smooth, the deformation graph smoothness term (Eq. 4)', (0.0, INF)),
+    'beta_small': ('weight of E_small, the small-motion term between frames (Eq. 4)', (0.0, INF)),
+    'initial_sigma2': ('GMM variance at the start of every frame, m^2 (Sec. 7)', (1e-12, INF)),
+    'max_iterations': ('EM iterations per frame at most (Alg. 1)', (1, 1000)),
+    'tolerance': ('stop EM when the relative energy change is below this', (0.0, 1.0)),
+    'm_step': ('M-step scheme: translations_rotations (default, converges with stiff beta_smooth) '
+               'or per_node (the paper node-by-node scheme)', _ANY),
+    'node_spacing': ('deformation graph node spacing, m; 0 = automatic', (0.0, INF)),
+    'node_spacing_factor': ('automatic node spacing = this x the median rest point spacing', (1.0, 100.0)),
+    'n_influence': ('deformation graph nodes blending each point (Eq. 2)', (1, 16)),
+    'e_step_neighbours': ('truncated E-step: nearest centroids per observed point', (1, 64)),
+    'truncation_sigmas': ('truncated E-step: neighbour radius in GMM standard deviations', (1.0, 100.0)),
+    'min_sigma2': ('lower bound of the GMM variance, m^2', (0.0, INF)),
+    'max_sigma2': ('a frame whose variance ends above this counts as diverged, m^2', (0.0, INF)),
+    'min_matched_fraction': ('a frame explaining less than this share of its points diverged', (0.0, 1.0)),
+    'min_points': ('a preprocessed frame with fewer points is skipped as empty', (1, 10_000_000)),
+    'rest_pose.n_points': ('M, rest points = registered points per frame', (100, 1_000_000)),
+    'rest_pose.poisson_depth': ('octree depth of the Poisson reconstruction of the rest pose', (4, 12)),
+    'rest_pose.density_quantile': ('Poisson vertices below this density quantile are trimmed', (0.0, 1.0)),
+    'rest_pose.max_distance_factor': ('surface farther than this x point spacing from the data is trimmed',
+                                      (0.0, INF)),
+    'rest_pose.normal_neighbours': ('neighbours for normal estimation', (3, 200)),
+    'rest_pose.camera_location': ('[x, y, z] m, normals are oriented towards it (the cloud frame origin)', _ANY),
+    'rest_pose.poisson_threads': ('threads of the Poisson solver; 1 = repeatable, -1 = all cores', (-1, 256)),
+    'preprocess.crop_min': ('[x, y, z] m lower corner of a crop box in the cloud frame; [] = no crop', _ANY),
+    'preprocess.crop_max': ('[x, y, z] m upper corner of the crop box; [] = no crop', _ANY),
+    'preprocess.target_points': ('voxel downsampling aims at this many points per frame', (100, 10_000_000)),
+    'preprocess.initial_voxel_size': ('first voxel size tried, m (adapted per frame)', (1e-4, 1.0)),
+    'preprocess.max_input_points': ('larger clouds are randomly thinned to this many points first',
+                                    (1000, 100_000_000)),
+    'preprocess.remove_plane': ('remove the dominant plane (floor, table)', _ANY),
+    'preprocess.plane_distance': ('plane inlier distance, m', (1e-4, 1.0)),
+    'preprocess.plane_min_fraction': ('only a plane holding this share of the points is removed', (0.0, 1.0)),
+    'preprocess.keep_largest_cluster': ('keep only the largest Euclidean cluster (the subject)', _ANY),
+    'preprocess.cluster_eps': ('cluster neighbour distance, m', (1e-4, 10.0)),
+    'preprocess.cluster_min_points': ('smallest cluster, points', (1, 1_000_000)),
+    'preprocess.outlier_neighbours': ('statistical outlier removal neighbours; 0 = off', (0, 200)),
+    'preprocess.outlier_std_ratio': ('statistical outlier removal threshold, standard deviations', (0.1, 100.0)),
+    'preprocess.seed': ('seed of the random thinning', (0, 2**31 - 1)),
+    'input_reliability': ('QoS of the points subscription: best_effort (sensor data, matches every driver) '
+                          'or reliable (lossless bag replay; needs a reliable publisher)', _ANY),
+    'queue_size': ('clouds waiting for the registration at most; older ones are skipped (and counted) '
+                   'when processing falls behind the camera', (1, 100_000)),
+}
+
+_ACCUMULATOR = {
+    'window_size': ('frames collected before the skeletal structure is extracted', (2, 100_000)),
+    'sliding': ('keep extracting every `stride` frames over the last window_size frames', _ANY),
+    'stride': ('frames between extractions when sliding', (1, 100_000)),
+    'n_clusters': ('initial K-means clusters (deliberately more than the bones)', (2, 10_000)),
+    'cluster_on': ('K-means features: trajectories (whole registered paths) or rest (positions)', _ANY),
+    'n_rounds': ('rounds of rigid fit / relabel / local continuity (paper: 10)', (0, 1000)),
+    'neighbour_radius': ('ball radius for local continuity and bone adjacency, m; 0 = automatic', (0.0, INF)),
+    'neighbour_radius_factor': ('automatic radius = this x the median rest point spacing', (0.1, 100.0)),
+    'min_bone_fraction': ('bones with fewer than this share of the points are dropped', (0.0, 1.0)),
+    'motion_noise_factor': ('own motion below this x the rigid-fit noise: bone merged into its parent',
+                            (0.0, INF)),
+    'min_motion_fraction': ('own motion below this x the subject size: bone merged into its parent', (0.0, 1.0)),
+    'leaf_min_fraction': ('paper rule 1: leaf bones at branching joints below this share of points are dropped',
+                          (0.0, 1.0)),
+    'joint_merge_fraction': ('paper rule 3: joints closer than this x the subject size are merged', (0.0, 1.0)),
+    'eta': ('weight of the joint data term, Step 2 joint solve (Table 1)', (0.0, INF)),
+    'seed': ('K-means seed', (0, 2**31 - 1)),
+}
+
+_JOINTS = {
+    'omega': ("outlier weight omega' of the GMM (Eq. 11)", (0.0, 0.999)),
+    'eta': ('weight of the joint data term in E_Joint (Table 1)', (0.0, INF)),
+    'zeta': ('weight of E_Register, the pull to the registered points (Table 1)', (0.0, INF)),
+    'gamma': ('weight of E_small (Table 1)', (0.0, INF)),
+    'alpha_growth': ('alpha = zeta * M * alpha_growth^iteration (E_Joint weight)', (1.0, 100.0)),
+    'initial_tau': ('initial per-frame GMM variance tau, m^2', (1e-12, INF)),
+    'max_iterations': ('Alg. 2 EM iterations at most', (1, 1000)),
+    'tolerance': ('stop Alg. 2 when the relative energy change is below this', (0.0, 1.0)),
+    'max_influences': ('bones per point in the LBS weights (Eq. 12b)', (1, 4)),
+    'e_step_neighbours': ('truncated E-step: nearest centroids per observed point', (1, 64)),
+    'truncation_sigmas': ('truncated E-step: neighbour radius in standard deviations', (1.0, 100.0)),
+    'min_tau': ('lower bound of tau, m^2', (0.0, INF)),
+    'buffer_size': ('registered + filtered frames kept to find a structure window in', (2, 100_000)),
+    'live_sweeps': ('live per-frame fit: bone-by-bone passes after the rigid initialisation', (0, 100)),
+    'joint_diameter': ('diameter of the joint spheres in skeleton/markers, m', (1e-4, 10.0)),
+}
+
+PARAMETER_DOCS = {'registration_node': _REGISTRATION, 'accumulator_node': _ACCUMULATOR,
+                  'joint_estimation_node': _JOINTS}
+
+
+def describe(node: str, name: str) -> tuple:
+    """(description, low, high) of a node parameter; KeyError for an undocumented one."""
+    description, (low, high) = PARAMETER_DOCS[node][name]
+    return description, low, high

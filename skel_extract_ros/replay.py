@@ -1,0 +1,321 @@
+"""`skel-extract replay`: the three nodes as separate processes over real DDS, fed from a bag.
+
+The bag's clouds are published on `points` with their original header stamps, at the
+bag's pace scaled by `rate` (0 = as fast as the registration node takes them). A frame is
+never published before the registration node has answered the previous one, so the
+replay loses nothing however slow the machine is; the printed rate says what was
+sustained. Every output topic is recorded (raw CDR, receive time) into DIR/output.mcap
+with rosbags, and skeleton.json / registered.npz / skeleton.png are written from the
+received messages: the same files as `skel-extract run`.
+"""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+NODES = ('registration_node', 'accumulator_node', 'joint_estimation_node')
+# (relative topic, message type, latched)
+OUTPUT_TOPICS = (
+    ('registered_points', 'sensor_msgs/msg/PointCloud2', False),
+    ('filtered_points', 'sensor_msgs/msg/PointCloud2', False),
+    ('rest_points', 'sensor_msgs/msg/PointCloud2', True),
+    ('skeleton/structure', 'std_msgs/msg/String', True),
+    ('skeleton/description', 'std_msgs/msg/String', True),
+    ('skeleton/joints', 'geometry_msgs/msg/PoseArray', False),
+    ('skeleton/markers', 'visualization_msgs/msg/MarkerArray', False),
+)
+
+
+class ReplayError(RuntimeError):
+    """Replay could not finish; the message is one line for the user."""
+
+
+@dataclass
+class Received:
+    """What came back from the nodes, keyed by header stamp (ns); times are perf_counter s."""
+
+    published_at: dict = field(default_factory=dict)      # input stamp -> publish time
+    filtered: dict = field(default_factory=dict)          # stamp -> (N, 3)
+    filtered_at: dict = field(default_factory=dict)
+    registered: dict = field(default_factory=dict)        # stamp -> (M, 3)
+    registered_at: dict = field(default_factory=dict)
+    joints: dict = field(default_factory=dict)            # stamp -> (J, 3), last received
+    joints_at: dict = field(default_factory=dict)
+    rest: np.ndarray | None = None
+    structure: dict | None = None
+    description: dict | None = None
+    frame_id: str = ''
+    counts: dict = field(default_factory=dict)            # topic -> messages
+
+
+def _ros_type(name: str):
+    package, _, message = name.split('/')
+    module = __import__(f'{package}.msg', fromlist=[message])
+    return getattr(module, message)
+
+
+def _start_nodes(params_file: Path, namespace: str | None, logs: Path) -> dict:
+    logs.mkdir(parents=True, exist_ok=True)
+    env = dict(os.environ, PYTHONUNBUFFERED='1')
+    processes = {}
+    for name in NODES:
+        command = [sys.executable, '-m', f'skel_extract_ros.nodes.{name}', '--ros-args',
+                   '--params-file', str(params_file)]
+        if name == 'registration_node':   # a bag replay must not lose clouds (see the node)
+            command += ['-p', 'input_reliability:=reliable']
+        if namespace:
+            command += ['-r', f'__ns:={namespace}']
+        log = open(logs / f'{name}.log', 'w')
+        processes[name] = (subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, env=env), log)
+    return processes
+
+
+def _stop_nodes(processes: dict) -> dict:
+    """SIGINT (Ctrl-C) every node, as a user would; returns {name: exit code}."""
+    for process, _ in processes.values():
+        if process.poll() is None:
+            process.send_signal(signal.SIGINT)
+    codes = {}
+    for name, (process, log) in processes.items():
+        try:
+            codes[name] = process.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            codes[name] = process.wait()
+        log.close()
+    return codes
+
+
+def _log_tail(path: Path, lines: int = 3) -> str:
+    try:
+        return ' | '.join(path.read_text().strip().splitlines()[-lines:])
+    except OSError:
+        return ''
+
+
+class _Recorder:
+    """rclpy node: publishes the input clouds, records and decodes every output."""
+
+    def __init__(self, node, writer, store, received: Received):
+        from rclpy.serialization import deserialize_message
+
+        from .nodes.common import LATCHED_QOS, STREAM_QOS
+        self.node, self.writer, self.received = node, writer, received
+        self._deserialize = deserialize_message
+        self.condition = threading.Condition()
+        self.publisher = node.create_publisher(_ros_type('sensor_msgs/msg/PointCloud2'), 'points', STREAM_QOS)
+        self.connections = {}
+        for topic, type_name, latched in OUTPUT_TOPICS:
+            resolved = node.resolve_topic_name(topic)
+            self.connections[topic] = writer.add_connection(resolved, type_name, typestore=store)
+            node.create_subscription(_ros_type(type_name), topic,
+                                     lambda raw, t=topic, n=type_name: self._on_message(t, n, raw),
+                                     LATCHED_QOS if latched else STREAM_QOS, raw=True)
+
+    def _on_message(self, topic: str, type_name: str, raw: bytes) -> None:
+        from .nodes.conversions import pose_array_positions, stamp_ns
+        from .pointcloud import decode_xyz
+        now = time.perf_counter()
+        self.writer.write(self.connections[topic], time.time_ns(), raw)
+        msg = self._deserialize(raw, _ros_type(type_name))
+        r = self.received
+        with self.condition:
+            r.counts[topic] = r.counts.get(topic, 0) + 1
+            if topic == 'filtered_points':
+                stamp = stamp_ns(msg.header)
+                r.filtered[stamp], r.filtered_at[stamp] = decode_xyz(msg), now
+            elif topic == 'registered_points':
+                stamp = stamp_ns(msg.header)
+                r.registered[stamp], r.registered_at[stamp] = decode_xyz(msg), now
+                r.frame_id = msg.header.frame_id
+            elif topic == 'rest_points':
+                r.rest = decode_xyz(msg, dtype=np.float64)
+            elif topic == 'skeleton/structure':
+                r.structure = json.loads(msg.data)
+            elif topic == 'skeleton/description':
+                r.description = json.loads(msg.data)
+            elif topic == 'skeleton/joints':
+                stamp = stamp_ns(msg.header)
+                r.joints[stamp], r.joints_at[stamp] = pose_array_positions(msg), now
+            self.condition.notify_all()
+
+    def wait_for(self, predicate, timeout: float, alive=None) -> bool:
+        deadline = time.monotonic() + timeout
+        with self.condition:
+            while not predicate():
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    return False
+                if alive is not None:
+                    alive()
+                self.condition.wait(min(remaining, 0.2))
+        return True
+
+
+def replay(input_path, out, rate: float = 1.0, topic: str | None = None, params_file=None,
+           namespace: str | None = None, frame_timeout: float = 20.0, progress=None) -> dict:
+    """Run the node graph on a bag; writes DIR/output.mcap, skeleton.json, registered.npz,
+    skeleton.png and DIR/logs/<node>.log. Returns a summary dict (counts, latencies).
+    Raises ReplayError / BagError on failure."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.serialization import deserialize_message
+    from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
+    from std_srvs.srv import Trigger
+
+    from .nodes.conversions import stamp_ns
+
+    from .bag import _raw_messages, cloud_topics, select_cloud_topic, typestore
+    from .params import DEFAULT_PARAMS_FILE, load_params_file
+
+    input_path, out = Path(input_path), Path(out)
+    if rate < 0:
+        raise ReplayError(f'--rate must be >= 0 (0 = as fast as possible), got {rate}')
+    topic = select_cloud_topic(input_path, topic)
+    n_frames = cloud_topics(input_path)[topic]
+    if n_frames < 2:
+        raise ReplayError(f'{input_path}: {n_frames} cloud(s) on {topic}; at least 2 are needed')
+    params_file = Path(params_file) if params_file else DEFAULT_PARAMS_FILE
+    load_params_file(params_file)   # fail early, in this process, on a bad file
+    if (out / 'output.mcap').exists():
+        raise ReplayError(f'{out / "output.mcap"} exists already; choose a new --out or remove it')
+    out.mkdir(parents=True, exist_ok=True)
+
+    store = typestore()
+    cloud_type = _ros_type('sensor_msgs/msg/PointCloud2')
+    received = Received()
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    processes = _start_nodes(params_file, namespace, out / 'logs')
+    writer = Writer(out / 'output.mcap', version=9, storage_plugin=StoragePlugin.MCAP)
+    writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+    writer.open()
+    node = rclpy.create_node('skel_extract_replay', namespace=namespace or '', context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    exit_codes = {}
+    try:
+        recorder = _Recorder(node, writer, store, received)
+        spinner.start()
+
+        def alive():
+            for name, (process, _) in processes.items():
+                if process.poll() is not None:
+                    raise ReplayError(f'{name} exited with code {process.returncode}: '
+                                      f'{_log_tail(out / "logs" / f"{name}.log")}')
+
+        def connected():
+            return (recorder.publisher.get_subscription_count() >= 1
+                    and all(node.count_publishers(t) >= 1 for t, _, _ in OUTPUT_TOPICS))
+        if not recorder.wait_for(connected, 120.0, alive):
+            raise ReplayError('the nodes did not come up within 120 s (see DIR/logs)')
+
+        started = time.perf_counter()
+        first_stamp, previous = None, None
+        for index, (_time, raw) in enumerate(_raw_messages(input_path, topic)):
+            stamp = stamp_ns(deserialize_message(bytes(raw), cloud_type).header)
+            first_stamp = stamp if first_stamp is None else first_stamp
+            if previous is not None and not recorder.wait_for(
+                    lambda s=previous: s in received.filtered_at, frame_timeout, alive):
+                print(f'skel-extract replay: no answer to cloud {index - 1} within {frame_timeout:.0f} s; '
+                      'going on', file=sys.stderr)
+            if rate > 0:
+                due = started + (stamp - first_stamp) * 1e-9 / rate
+                time.sleep(max(0.0, due - time.perf_counter()))
+            received.published_at[stamp] = time.perf_counter()
+            recorder.publisher.publish(bytes(raw))
+            previous = stamp
+            if progress:
+                progress(index + 1, n_frames)
+        recorder.wait_for(lambda: previous in received.filtered_at, frame_timeout, alive)
+        # the last registered frame must be in before the window is closed by hand
+        recorder.wait_for(lambda: previous in received.registered_at, 5.0, alive)
+        streamed = time.perf_counter() - started
+        if not received.registered:
+            raise ReplayError('no cloud was registered (no rest pose: is the subject in view? '
+                              f'{_log_tail(out / "logs" / "registration_node.log")})')
+        if received.structure is None:
+            client = node.create_client(Trigger, 'accumulator_node/extract')
+            if not client.wait_for_service(timeout_sec=30.0):
+                raise ReplayError('accumulator_node/extract is not available')
+            future = client.call_async(Trigger.Request())
+            recorder.wait_for(future.done, 30.0, alive)
+            response = future.result()
+            if response is None or not response.success:
+                raise ReplayError(f'accumulator_node/extract refused: {response.message if response else "no reply"}')
+        budget = 120.0 + 5.0 * len(received.registered)
+        if not recorder.wait_for(lambda: received.structure is not None, budget, alive):
+            raise ReplayError('no skeleton/structure: ' + _log_tail(out / 'logs' / 'accumulator_node.log', 1))
+
+        def complete():
+            return (received.description is not None
+                    and all(s in received.joints for s in received.registered))
+        if not recorder.wait_for(complete, budget, alive):
+            raise ReplayError('joints missing for some frames: '
+                              + _log_tail(out / 'logs' / 'joint_estimation_node.log', 1))
+    finally:
+        exit_codes = _stop_nodes(processes)
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.shutdown(context=context)
+        writer.close()
+
+    summary = _write_files(received, out)
+    summary.update(_latencies(received))
+    summary['streamed_s'] = streamed
+    summary['clouds_per_s'] = n_frames / streamed
+    summary['exit_codes'] = exit_codes
+    summary['counts'] = dict(received.counts)
+    return summary
+
+
+def _write_files(received: Received, out: Path) -> dict:
+    from .core.skeleton_model import skeleton_document
+    from .visualization import draw_skeleton_png
+
+    stamps_ns = sorted(received.registered)
+    points = np.stack([received.registered[s] for s in stamps_ns])
+    stamps = np.array(stamps_ns, dtype=np.int64) * 1e-9
+    np.savez_compressed(out / 'registered.npz', points=points, stamps=stamps,
+                        status=np.array(['ok'] * len(stamps_ns)),
+                        rest_points=(received.rest if received.rest is not None
+                                     else np.empty((0, 3))).astype(np.float32),
+                        frame_id=np.array(received.frame_id))
+    description = received.description
+    n_joints = len(description['joint_names'])
+    with_joints = [s for s in stamps_ns if s in received.joints and len(received.joints[s]) == n_joints]
+    positions = np.stack([received.joints[s] for s in with_joints])
+    document = skeleton_document(description['joint_names'], description['parents'],
+                                 description['rest_positions'], np.array(with_joints) * 1e-9, positions,
+                                 description['frame_id'])
+    (out / 'skeleton.json').write_text(json.dumps(document))
+    labels = np.asarray(received.structure['labels'])
+    observed = [received.filtered.get(s, np.empty((0, 3))) for s in with_joints]
+    draw_skeleton_png(out / 'skeleton.png', observed, np.stack([received.registered[s] for s in with_joints]),
+                      labels, positions, np.asarray(description['parents']), np.array(with_joints) * 1e-9)
+    return {'n_frames': len(stamps_ns), 'n_joints': n_joints, 'n_frames_with_joints': len(with_joints)}
+
+
+def _latencies(received: Received) -> dict:
+    """Per-node latency (ms): registration = cloud published -> registered_points received;
+    joints (live frames only) = registered_points received -> skeleton/joints received."""
+    registration = [1000 * (received.registered_at[s] - received.published_at[s])
+                    for s in received.registered_at if s in received.published_at]
+    window = set(received.structure['window_stamps_ns']) if received.structure else set()
+    live = [1000 * (received.joints_at[s] - received.registered_at[s])
+            for s in received.joints_at if s in received.registered_at and s not in window]
+    result = {}
+    for name, values in (('registration_ms', registration), ('live_joints_ms', live)):
+        if values:
+            result[name] = {'median': float(np.median(values)), 'worst': float(np.max(values)), 'n': len(values)}
+    return result
