@@ -18,6 +18,7 @@ setup(
         ('share/ament_index/resource_index/packages', ['resource/' + PACKAGE_NAME]),
         ('share/' + PACKAGE_NAME, ['package.xml']),
         ('share/' + PACKAGE_NAME + '/params', glob('params/*.yaml')),
+        ('share/' + PACKAGE_NAME + '/launch', glob('launch/*.launch.py')),
     ],
     install_requires=[
         'setuptools',

@@ -23,6 +23,19 @@ from .core.structure import StructureParams
 DEFAULT_PARAMS_FILE = Path(__file__).resolve().parent.parent / 'params' / 'skel_extract.yaml'
 
 
+def default_params_file() -> Path | None:
+    """The packaged parameter file: the source checkout's, else the installed share/ copy
+    (colcon / ROS installs), else None (the code defaults are the same values)."""
+    if DEFAULT_PARAMS_FILE.is_file():
+        return DEFAULT_PARAMS_FILE
+    try:
+        from ament_index_python.packages import PackageNotFoundError, get_package_share_directory
+        installed = Path(get_package_share_directory('skel_extract_ros')) / 'params' / 'skel_extract.yaml'
+        return installed if installed.is_file() else None
+    except (ImportError, PackageNotFoundError, ValueError):
+        return None
+
+
 class ParamsError(ValueError):
     """A parameter file that cannot be used; the message names the file and the key."""
 

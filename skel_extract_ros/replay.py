@@ -63,13 +63,14 @@ def _ros_type(name: str):
     return getattr(module, message)
 
 
-def _start_nodes(params_file: Path, namespace: str | None, logs: Path) -> dict:
+def _start_nodes(params_file: Path | None, namespace: str | None, logs: Path) -> dict:
     logs.mkdir(parents=True, exist_ok=True)
     env = dict(os.environ, PYTHONUNBUFFERED='1')
     processes = {}
     for name in NODES:
-        command = [sys.executable, '-m', f'skel_extract_ros.nodes.{name}', '--ros-args',
-                   '--params-file', str(params_file)]
+        command = [sys.executable, '-m', f'skel_extract_ros.nodes.{name}', '--ros-args']
+        if params_file is not None:
+            command += ['--params-file', str(params_file)]
         if name == 'registration_node':   # a bag replay must not lose clouds (see the node)
             command += ['-p', 'input_reliability:=reliable']
         if namespace:
@@ -175,7 +176,7 @@ def replay(input_path, out, rate: float = 1.0, topic: str | None = None, params_
     from .nodes.conversions import stamp_ns
 
     from .bag import _raw_messages, cloud_topics, select_cloud_topic, typestore
-    from .params import DEFAULT_PARAMS_FILE, load_params_file
+    from .params import default_params_file, load_params_file
 
     input_path, out = Path(input_path), Path(out)
     if rate < 0:
@@ -184,8 +185,9 @@ def replay(input_path, out, rate: float = 1.0, topic: str | None = None, params_
     n_frames = cloud_topics(input_path)[topic]
     if n_frames < 2:
         raise ReplayError(f'{input_path}: {n_frames} cloud(s) on {topic}; at least 2 are needed')
-    params_file = Path(params_file) if params_file else DEFAULT_PARAMS_FILE
-    load_params_file(params_file)   # fail early, in this process, on a bad file
+    params_file = Path(params_file) if params_file else default_params_file()
+    if params_file is not None:
+        load_params_file(params_file)   # fail early, in this process, on a bad file
     if (out / 'output.mcap').exists():
         raise ReplayError(f'{out / "output.mcap"} exists already; choose a new --out or remove it')
     out.mkdir(parents=True, exist_ok=True)

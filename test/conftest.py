@@ -1,4 +1,7 @@
-"""Shared fixtures: the bundled sample bag and small simulated sequences."""
+"""Shared fixtures: the bundled sample bag, its `skel-extract run` output, small simulated sequences."""
+import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -13,6 +16,20 @@ SAMPLE_BAG = REPO_ROOT / 'bags' / 'sample_human'
 def sample_bag() -> Path:
     assert (SAMPLE_BAG / 'metadata.yaml').is_file(), 'the sample bag must be committed in bags/'
     return SAMPLE_BAG
+
+
+CLI = shutil.which('skel-extract', path=str(Path(sys.executable).parent)) or 'skel-extract'
+
+
+def run_cli(*args, timeout=900):
+    return subprocess.run([CLI, *map(str, args)], capture_output=True, text=True, timeout=timeout)
+
+
+@pytest.fixture(scope='session')
+def sample_run(sample_bag, tmp_path_factory):
+    """(completed process, output dir) of `skel-extract run` on the sample bag (run once)."""
+    out = tmp_path_factory.mktemp('sample_run') / 'out'
+    return run_cli('run', sample_bag, '--out', out), out
 
 
 @pytest.fixture(scope='session')

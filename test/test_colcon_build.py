@@ -1,8 +1,10 @@
 """The package builds with colcon as a ROS user would, and its executables start."""
 import os
 import shutil
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -38,3 +40,24 @@ def test_executables_land_in_lib_and_start(colcon_install):
     assert done.returncode == 0 and 'simulate' in done.stdout
     done = subprocess.run([str(executable), 'no-such-command'], capture_output=True, text=True, env=env, timeout=120)
     assert done.returncode == 2 and 'Traceback' not in done.stderr
+
+
+@pytest.mark.parametrize('name', ['registration_node', 'accumulator_node', 'joint_estimation_node'])
+def test_installed_nodes_come_up_and_shut_down_cleanly(colcon_install, name, tmp_path):
+    executable = colcon_install / 'lib' / 'skel_extract_ros' / name
+    assert executable.is_file() and os.access(executable, os.X_OK)
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(str(p) for p in
+                                                      colcon_install.glob('lib/python3*/site-packages')),
+               ROS_DOMAIN_ID=str(100 + os.getpid() % 100), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
+               PYTHONUNBUFFERED='1')
+    log = tmp_path / 'node.log'
+    with open(log, 'w') as stream:
+        process = subprocess.Popen([str(executable)], stdout=stream, stderr=subprocess.STDOUT, env=env)
+        deadline = time.monotonic() + 120
+        while 'waiting for' not in log.read_text():      # its "ready" line
+            assert process.poll() is None, log.read_text()
+            assert time.monotonic() < deadline, 'the node did not come up: ' + log.read_text()
+            time.sleep(0.05)
+        process.send_signal(signal.SIGINT)
+        assert process.wait(timeout=30) == 0, log.read_text()
+    assert 'Traceback' not in log.read_text()

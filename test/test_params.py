@@ -40,3 +40,34 @@ def test_unknown_or_invalid_parameters_are_rejected(tmp_path):
         load_params_file(bad)
     with pytest.raises(ParamsError, match='does not exist'):
         load_params_file(tmp_path / 'missing.yaml')
+
+
+def _flat(values, prefix=''):
+    for key, value in values.items():
+        if isinstance(value, dict):
+            yield from _flat(value, prefix + key + '.')
+        else:
+            yield prefix + key
+
+
+def test_every_node_parameter_is_documented_in_the_file_the_code_and_the_readme():
+    from skel_extract_ros.parameter_docs import PARAMETER_DOCS
+    from skel_extract_ros.params import NODE_ONLY
+    nodes = load_params_file(DEFAULT_PARAMS_FILE)
+    readme = (DEFAULT_PARAMS_FILE.parent.parent / 'README.md').read_text()
+    declared = {
+        'registration_node': [f.name for f in dataclasses.fields(RegistrationParams)]
+        + ['rest_pose.' + f.name for f in dataclasses.fields(RestPoseParams)]
+        + ['preprocess.' + f.name for f in dataclasses.fields(PreprocessParams)],
+        'accumulator_node': [f.name for f in dataclasses.fields(StructureParams)],
+        'joint_estimation_node': [f.name for f in dataclasses.fields(JointParams)],
+    }
+    for node, names in declared.items():
+        names = set(names) | set(NODE_ONLY[node])
+        assert set(PARAMETER_DOCS[node]) == names, node
+        assert set(_flat(nodes[node])) == names, node
+        for name in names:
+            assert f'| `{name}` |' in readme, f'{node}.{name} missing from the README'
+        for name, value in NODE_ONLY[node].items():
+            section = nodes[node]
+            assert section[name] == value, f'{node}.{name}: YAML {section[name]} != code {value}'

@@ -59,7 +59,7 @@ class AccumulatorNode(Node):
         self.create_subscription(PointCloud2, 'filtered_points', self._on_filtered, STREAM_QOS)
         self.create_service(Trigger, '~/extract', self._on_extract)
         mode = f'sliding, every {self.stride} frames' if self.sliding else 'once'
-        self.get_logger().info(f'collecting windows of {self.window_size} frames ({mode})')
+        self.get_logger().info(f'waiting for registered_points: windows of {self.window_size} frames ({mode})')
 
     # -- inputs ----------------------------------------------------------------------------
     def _on_rest(self, msg: PointCloud2) -> None:

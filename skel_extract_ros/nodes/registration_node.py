@@ -135,7 +135,7 @@ class RegistrationNode(Node):
         try:
             raw = decode_xyz(msg)
         except CloudDecodeError as error:
-            self.log.warn('decode', f'ignoring a cloud in frame {frame_id!r}: {error}')
+            self.log.warn(f'decode:{str(error)[:24]}', f'ignoring a cloud in frame {frame_id!r}: {error}')
             return
         if len(raw) > self.preprocess_params.max_input_points:
             self.log.warn('large', f'cloud of {len(raw)} points: randomly thinned to '
@@ -172,7 +172,7 @@ class RegistrationNode(Node):
                                    f'({len(self.rest_pose.points)} points, frame {frame_id!r})')
         result = self.registration.register_frame(observed)
         if result.status != STATUS_OK:
-            self.log.warn('status', f'cloud at {stamp * 1e-9:.3f} s not registered ({result.status}: '
+            self.log.warn(f'status:{result.status}:{len(observed) == 0}', f'cloud at {stamp * 1e-9:.3f} s not registered ({result.status}: '
                                     f'{len(observed)} points after preprocessing); holding the last pose')
             return
         self.registered_pub.publish(cloud_message(result.points, msg.header))

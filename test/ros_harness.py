@@ -1,0 +1,93 @@
+"""In-process rclpy on a private domain: nodes under test, a probe node that publishes and
+records, and predicate waits (never fixed sleeps)."""
+import os
+import threading
+import time
+
+import numpy as np
+import rclpy
+from rcl_interfaces.msg import Log
+from rclpy.executors import MultiThreadedExecutor
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import PointCloud2, PointField
+from std_msgs.msg import Header
+
+from skel_extract_ros.pointcloud import encode_xyz
+
+
+class Harness:
+    def __init__(self):
+        os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+        # private domain per test process so parallel runs and other graphs never mix
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context, domain_id=100 + os.getpid() % 100)
+        self.executor = MultiThreadedExecutor(num_threads=4, context=self.context)
+        self.probe = rclpy.create_node('probe', context=self.context)
+        self.executor.add_node(self.probe)
+        self.nodes = []
+        self.received = {}
+        self._lock = threading.Lock()
+        self.logs = self.listen('/rosout', Log, QoSProfile(depth=1000))
+        self._thread = threading.Thread(target=self.executor.spin, daemon=True)
+        self._thread.start()
+
+    def add(self, node_class, **kwargs):
+        node = node_class(context=self.context, **kwargs)
+        self.nodes.append(node)
+        self.executor.add_node(node)
+        return node
+
+    def listen(self, topic, msg_type, qos):
+        messages = []
+        self.probe.create_subscription(msg_type, topic, messages.append, qos)
+        return messages
+
+    def publisher(self, topic, msg_type, qos):
+        return self.probe.create_publisher(msg_type, topic, qos)
+
+    def wait(self, predicate, timeout=60.0, what='condition'):
+        deadline = time.monotonic() + timeout
+        while not predicate():
+            if time.monotonic() > deadline:
+                raise AssertionError(f'timed out after {timeout:.0f} s waiting for {what}')
+            time.sleep(0.01)
+
+    def wait_matched(self, publisher, timeout=30.0):
+        self.wait(lambda: publisher.get_subscription_count() >= 1, timeout, 'a subscription to match')
+
+    def warnings(self, node_name):
+        return [log.msg for log in list(self.logs) if log.name == node_name and log.level >= Log.WARN]
+
+    def call(self, service_type, name, timeout=30.0):
+        client = self.probe.create_client(service_type, name)
+        assert client.wait_for_service(timeout_sec=timeout), f'service {name} not available'
+        future = client.call_async(service_type.Request())
+        self.wait(future.done, timeout, f'a reply from {name}')
+        return future.result()
+
+    def close(self):
+        self.executor.shutdown()
+        for node in self.nodes:
+            node.destroy_node()
+        self.probe.destroy_node()
+        rclpy.shutdown(context=self.context)
+
+
+def header(stamp_ns, frame_id='camera_depth_optical_frame'):
+    msg = Header(frame_id=frame_id)
+    msg.stamp.sec, msg.stamp.nanosec = int(stamp_ns // 1_000_000_000), int(stamp_ns % 1_000_000_000)
+    return msg
+
+
+def cloud(points, stamp_ns, frame_id='camera_depth_optical_frame', point_step=16):
+    """An organized (H, W, 3) or unorganized (N, 3) float32 PointCloud2."""
+    height, width, point_step, row_step, data, is_dense = encode_xyz(np.asarray(points), point_step)
+    msg = PointCloud2(header=header(stamp_ns, frame_id), height=height, width=width, point_step=point_step,
+                      row_step=row_step, is_dense=is_dense, is_bigendian=False)
+    msg.fields = [PointField(name=n, offset=4 * i, datatype=PointField.FLOAT32, count=1) for i, n in enumerate('xyz')]
+    msg.data = data
+    return msg
+
+
+def stamps_of(messages):
+    return [m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec for m in list(messages)]

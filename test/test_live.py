@@ -1,0 +1,47 @@
+"""Live joints: the learned LBS model fitted to frames it was not learned from."""
+import numpy as np
+import pytest
+
+from skel_extract_ros.core.joints import JointEstimation
+from skel_extract_ros.core.live import LiveJointTracker
+from skel_extract_ros.core.skeleton_model import SkeletonModel
+from skel_extract_ros.core.structure import StructureParams, extract_structure
+from two_bone import two_bone_sequence
+
+
+@pytest.fixture(scope='module')
+def learned():
+    rest, registered, _labels, joint, joint_path = two_bone_sequence(n_frames=40)
+    window = registered[::2]          # learn from every other frame, track the rest
+    structure = extract_structure(rest, window, StructureParams(n_clusters=12))
+    estimate = JointEstimation().fit(rest, window, list(window), structure)
+    model = SkeletonModel(rest, structure.labels, estimate.parents, estimate.joints,
+                          estimate.influences, estimate.weights)
+    return model, registered, joint_path, estimate
+
+
+@pytest.mark.parametrize('sweeps', [0, 2])
+def test_live_joints_follow_unseen_frames(learned, sweeps):
+    model, registered, joint_path, _ = learned
+    tracker = LiveJointTracker(model, sweeps=sweeps)
+    child = int(np.flatnonzero(model.parents >= 0)[0])
+    unseen = np.arange(1, len(registered), 2)
+    tracked = np.array([tracker.track(registered[f])[child] for f in unseen])
+    assert np.linalg.norm(tracked - joint_path[unseen], axis=1).max() < 2e-3
+
+
+def test_live_fit_matches_alg2_on_its_own_window(learned):
+    model, registered, _, estimate = learned
+    tracker = LiveJointTracker(model, sweeps=2)
+    live = np.array([tracker.track(frame) for frame in registered[::2]])
+    np.testing.assert_allclose(live, estimate.joint_trajectories(), atol=2e-3)
+    rotations, _ = tracker.fit(registered[0])
+    np.testing.assert_allclose(np.linalg.det(rotations), 1.0, atol=1e-9)
+
+
+def test_live_rejects_a_frame_of_another_size(learned):
+    model = learned[0]
+    with pytest.raises(ValueError, match='points'):
+        LiveJointTracker(model).track(np.zeros((10, 3)))
+    with pytest.raises(ValueError, match='sweeps'):
+        LiveJointTracker(model, sweeps=-1)

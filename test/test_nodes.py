@@ -1,0 +1,259 @@
+"""The three nodes alone, on real DDS (in process, private domain, localhost discovery)."""
+import json
+
+import numpy as np
+import pytest
+from geometry_msgs.msg import PoseArray
+from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from sensor_msgs.msg import PointCloud2, PointField
+from std_msgs.msg import String
+from std_srvs.srv import Trigger
+from visualization_msgs.msg import Marker, MarkerArray
+
+from ros_harness import Harness, cloud, header, stamps_of
+from skel_extract_ros.core.structure import StructureParams, extract_structure
+from skel_extract_ros.nodes.accumulator_node import AccumulatorNode
+from skel_extract_ros.nodes.common import LATCHED_QOS, STREAM_QOS, ParameterError
+from skel_extract_ros.nodes.conversions import cloud_message, structure_document
+from skel_extract_ros.nodes.joint_estimation_node import JointEstimationNode
+from skel_extract_ros.nodes.registration_node import RegistrationNode
+from skel_extract_ros.pointcloud import decode_xyz
+from skel_extract_ros.sim import NoiseModel, generate_sequence
+from two_bone import two_bone_sequence
+
+from rclpy.parameter import Parameter
+
+T0 = 1_700_000_000_000_000_000
+DT = 33_333_333
+
+
+@pytest.fixture
+def ros():
+    harness = Harness()
+    yield harness
+    harness.close()
+
+
+@pytest.fixture(scope='module')
+def arm():
+    return generate_sequence('arm', 8, noise=NoiseModel.none(), seed=2, progress=False)
+
+
+def small_registration(ros, **extra):
+    overrides = [Parameter('rest_pose.n_points', value=600)]
+    overrides += [Parameter(k, value=v) for k, v in extra.items()]
+    return ros.add(RegistrationNode, parameter_overrides=overrides)
+
+
+@pytest.mark.parametrize('reliability', [ReliabilityPolicy.RELIABLE, ReliabilityPolicy.BEST_EFFORT])
+def test_registration_node_topics_headers_and_qos(ros, arm, reliability):
+    node = small_registration(ros)
+    registered = ros.listen('registered_points', PointCloud2, STREAM_QOS)
+    filtered = ros.listen('filtered_points', PointCloud2, STREAM_QOS)
+    pub = ros.publisher('points', PointCloud2, QoSProfile(depth=10, reliability=reliability))
+    ros.wait_matched(pub)
+    for i in range(3):
+        pub.publish(cloud(arm.clouds[i], arm.stamps_ns[i]))
+        ros.wait(lambda: len(registered) == i + 1, what=f'registered frame {i}')
+    assert stamps_of(registered) == list(arm.stamps_ns[:3]) == stamps_of(filtered)
+    assert {m.header.frame_id for m in registered} == {'camera_depth_optical_frame'}
+    points = [decode_xyz(m) for m in registered]
+    assert all(p.shape == (600, 3) for p in points)
+    assert np.abs(points[1] - points[0]).max() > 1e-3       # the arm moved, the points followed
+    # the rest pose is latched: a late subscriber still gets it
+    late = ros.listen('rest_points', PointCloud2, LATCHED_QOS)
+    ros.wait(lambda: len(late) == 1, what='latched rest_points')
+    assert decode_xyz(late[0], dtype=np.float64).shape == (600, 3)
+    assert node.skipped == 0
+
+
+def test_registration_node_reads_the_parameter_file(ros, tmp_path):
+    params = tmp_path / 'p.yaml'
+    params.write_text('registration_node:\n  ros__parameters:\n    rest_pose:\n      n_points: 450\n'
+                      '    beta_small: 2.0\n')
+    node = ros.add(RegistrationNode, cli_args=['--ros-args', '--params-file', str(params)])
+    assert node.rest_params.n_points == 450 and node.params.beta_small == 2.0
+    assert node.get_parameter('omega').value == 0.01           # Table 1 default
+    descriptor = node.describe_parameter('beta_smooth')
+    assert 'E_smooth' in descriptor.description and descriptor.floating_point_range
+    params.write_text('registration_node:\n  ros__parameters:\n    omega: 5.0\n')
+    with pytest.raises(ParameterError, match='omega'):
+        ros.add(RegistrationNode, cli_args=['--ros-args', '--params-file', str(params)])
+
+
+def _bad_clouds(good):
+    """(name, message, what to look for in the warning) for every bad input kind."""
+    empty = cloud(np.zeros((0, 3)), 0)
+    nan = cloud(np.full((240, 320, 3), np.nan), 0)
+    no_z = cloud(good, 0)
+    no_z.fields = [f for f in no_z.fields if f.name != 'z']
+    narrow = cloud(good, 0)
+    narrow.point_step = 8
+    narrow.row_step = 8 * narrow.width
+    truncated = cloud(good, 0)
+    truncated.data = bytes(truncated.data)[: len(truncated.data) // 2]
+    valid = good.reshape(-1, 3)[np.isfinite(good.reshape(-1, 3)).all(axis=1)]
+    rng = np.random.default_rng(0)
+    million = valid[rng.integers(0, len(valid), 1_000_000)] + rng.normal(scale=1e-3, size=(1_000_000, 3))
+    huge = cloud(million.astype(np.float32), 0)
+    return [('empty', empty, 'not registered'), ('all-NaN', nan, '0 points after preprocessing'),
+            ('missing z', no_z, 'no field z'), ('wrong point_step', narrow, 'does not fit'),
+            ('truncated', truncated, 'truncated'), ('a million points', huge, 'thinned')]
+
+
+def test_registration_node_survives_every_bad_input(ros, arm):
+    node = small_registration(ros)
+    registered = ros.listen('registered_points', PointCloud2, STREAM_QOS)
+    filtered = ros.listen('filtered_points', PointCloud2, STREAM_QOS)
+    rests = ros.listen('rest_points', PointCloud2, LATCHED_QOS)
+    pub = ros.publisher('points', PointCloud2, QoSProfile(depth=10))
+    ros.wait_matched(pub)
+    stamp = T0
+    pub.publish(cloud(arm.clouds[0], stamp))
+    ros.wait(lambda: len(registered) == 1, what='the first frame')
+    for name, bad, warning in _bad_clouds(arm.clouds[1]):
+        stamp += DT
+        bad.header = header(stamp)
+        pub.publish(bad)
+        stamp += DT
+        pub.publish(cloud(arm.clouds[2], stamp))
+        ros.wait(lambda: stamp in stamps_of(registered), what=f'a good frame after the {name} cloud')
+        ros.wait(lambda: any(warning in m for m in ros.warnings('registration_node')),
+                 what=f'a warning about the {name} cloud')
+    # stamps going backwards (a looped bag): start over with a new rest pose
+    pub.publish(cloud(arm.clouds[0], T0 - 10 * DT))
+    ros.wait(lambda: len(rests) == 2, what='a new rest pose after stamps went back')
+    assert any('went back' in m for m in ros.warnings('registration_node'))
+    # frame_id changing mid-stream: also a new rest pose
+    pub.publish(cloud(arm.clouds[1], T0 - 9 * DT, frame_id='other_frame'))
+    ros.wait(lambda: len(rests) == 3, what='a new rest pose after the frame_id changed')
+    ros.wait(lambda: T0 - 9 * DT in stamps_of(registered), what='the frame in the new frame_id registered')
+    assert rests[-1].header.frame_id == 'other_frame' and registered[-1].header.frame_id == 'other_frame'
+    assert any('frame_id changed' in m for m in ros.warnings('registration_node'))
+    assert len(filtered) >= len(registered)
+
+
+def test_registration_reset_service_builds_a_new_rest_pose(ros, arm):
+    small_registration(ros)
+    rests = ros.listen('rest_points', PointCloud2, LATCHED_QOS)
+    registered = ros.listen('registered_points', PointCloud2, STREAM_QOS)
+    pub = ros.publisher('points', PointCloud2, qos_profile_sensor_data)
+    ros.wait_matched(pub)
+    pub.publish(cloud(arm.clouds[0], arm.stamps_ns[0]))
+    ros.wait(lambda: len(registered) == 1, what='the first frame')
+    response = ros.call(Trigger, 'registration_node/reset')
+    assert response.success
+    pub.publish(cloud(arm.clouds[3], arm.stamps_ns[3]))
+    ros.wait(lambda: len(rests) == 2, what='the rest pose rebuilt after ~/reset')
+    assert stamps_of(rests)[-1] == arm.stamps_ns[3]
+
+
+def test_registration_node_counts_skipped_clouds(ros, arm):
+    node = small_registration(ros)
+    registered = ros.listen('registered_points', PointCloud2, STREAM_QOS)
+    pub = ros.publisher('points', PointCloud2, QoSProfile(depth=50))
+    ros.wait_matched(pub)
+    for i in range(8):          # a burst much faster than registration: queue_size 1 skips
+        pub.publish(cloud(arm.clouds[i], arm.stamps_ns[i]))
+    ros.wait(lambda: node.processed + node.skipped == 8, what='every cloud processed or skipped')
+    assert node.skipped > 0 and len(registered) == node.processed
+    ros.wait(lambda: any('skipped so far' in m for m in ros.warnings('registration_node')),
+             what='the skip warning')
+
+
+def _publish_two_bone(ros, rest, frames, start=0):
+    """Stream registered + filtered clouds as the registration node would."""
+    reg_pub = ros.publisher('registered_points', PointCloud2, STREAM_QOS)
+    filt_pub = ros.publisher('filtered_points', PointCloud2, STREAM_QOS)
+    for pub in (reg_pub, filt_pub):
+        ros.wait_matched(pub)
+    for i, frame in enumerate(frames, start):
+        h = header(T0 + i * DT)
+        reg_pub.publish(cloud_message(frame, h))
+        filt_pub.publish(cloud_message(frame, h))
+
+
+def _publish_rest(ros, rest):
+    pub = ros.publisher('rest_points', PointCloud2, LATCHED_QOS)
+    pub.publish(cloud_message(rest, header(T0), float64=True))
+    return pub
+
+
+def test_accumulator_extracts_a_structure_when_the_window_is_full(ros):
+    rest, registered, labels, _, _ = two_bone_sequence(n_frames=12)
+    ros.add(AccumulatorNode, parameter_overrides=[Parameter('window_size', value=10),
+                                                  Parameter('n_clusters', value=12)])
+    rest_pub = _publish_rest(ros, rest)
+    ros.wait_matched(rest_pub)
+    _publish_two_bone(ros, rest, registered[:10])
+    late = ros.listen('skeleton/structure', String, LATCHED_QOS)
+    ros.wait(lambda: len(late) == 1, what='the latched structure')
+    document = json.loads(late[0].data)
+    assert document['n_bones'] == 2 and len(document['labels']) == len(rest)
+    assert document['window_stamps_ns'] == [T0 + i * DT for i in range(10)]
+    agreement = np.mean(np.array(document['labels']) == labels)
+    assert max(agreement, 1 - agreement) > 0.95
+    assert document['rest_stamp_ns'] == T0
+
+
+def test_accumulator_extract_service(ros):
+    rest, registered, _, _, _ = two_bone_sequence(n_frames=12)
+    node = ros.add(AccumulatorNode, parameter_overrides=[Parameter('n_clusters', value=12)])   # window 60
+    structures = ros.listen('skeleton/structure', String, LATCHED_QOS)
+    assert not ros.call(Trigger, 'accumulator_node/extract').success       # nothing yet
+    rest_pub = _publish_rest(ros, rest)
+    ros.wait_matched(rest_pub)
+    _publish_two_bone(ros, rest, registered[:12])
+    ros.wait(lambda: len(node.frames) == 12, what='all 12 frames collected')
+    assert 'extracting from 12' in ros.call(Trigger, 'accumulator_node/extract').message
+    ros.wait(lambda: len(structures) == 1, what='the structure')
+    assert len(json.loads(structures[0].data)['window_stamps_ns']) == 12
+
+
+def test_joint_estimation_node_window_then_live(ros):
+    rest, registered, _, joint, joint_path = two_bone_sequence(n_frames=24)
+    node = ros.add(JointEstimationNode)
+    description = ros.listen('skeleton/description', String, LATCHED_QOS)
+    joints = ros.listen('skeleton/joints', PoseArray, STREAM_QOS)
+    markers = ros.listen('skeleton/markers', MarkerArray, STREAM_QOS)
+    rest_pub = _publish_rest(ros, rest)
+    ros.wait_matched(rest_pub)
+    window = registered[:12]
+    _publish_two_bone(ros, rest, window)
+    ros.wait(lambda: len(node.buffer) == 12, what='the window frames buffered')
+    structure = extract_structure(rest, window, StructureParams(n_clusters=12))
+    document = structure_document(structure, T0, [T0 + i * DT for i in range(12)], 'camera_depth_optical_frame')
+    pub = ros.publisher('skeleton/structure', String, LATCHED_QOS)
+    pub.publish(String(data=json.dumps(document)))
+    ros.wait(lambda: len(joints) == 12 and len(description) == 1, what='joints for every window frame')
+    described = json.loads(description[0].data)
+    assert described['joint_names'] == ['joint_0', 'joint_1'] and sorted(described['parents']) == [-1, 0]
+    assert stamps_of(joints) == [T0 + i * DT for i in range(12)]
+    child = described['parents'].index(0)
+    positions = np.array([[p.position.x, p.position.y, p.position.z] for p in joints[5].poses])
+    assert np.linalg.norm(positions[child] - joint_path[5]) < 2e-3
+    # markers: a sphere per joint with id = joint index, one LINE_LIST, input header
+    ros.wait(lambda: len(markers) == 12, what='markers for every window frame')
+    spheres = [m for m in markers[0].markers if m.type == Marker.SPHERE]
+    assert [m.id for m in spheres] == [0, 1]
+    lines = [m for m in markers[0].markers if m.type == Marker.LINE_LIST]
+    assert len(lines) == 1 and len(lines[0].points) == 2
+    assert markers[0].markers[0].header.frame_id == 'camera_depth_optical_frame'
+    # live: later frames, never seen by Alg. 2
+    _publish_two_bone(ros, rest, registered[12:], start=12)
+    ros.wait(lambda: len(joints) == 24, what='live joints')
+    assert stamps_of(joints)[12:] == [T0 + i * DT for i in range(12, 24)]
+    live = np.array([[joints[i].poses[child].position.x, joints[i].poses[child].position.y,
+                      joints[i].poses[child].position.z] for i in range(12, 24)])
+    assert np.linalg.norm(live - joint_path[12:], axis=1).max() < 3e-3
+
+
+def test_joint_estimation_node_ignores_malformed_structures(ros):
+    rest, registered, _, _, _ = two_bone_sequence(n_frames=6)
+    ros.add(JointEstimationNode)
+    rest_pub = _publish_rest(ros, rest)
+    ros.wait_matched(rest_pub)
+    pub = ros.publisher('skeleton/structure', String, LATCHED_QOS)
+    pub.publish(String(data='{not json'))
+    ros.wait(lambda: any('malformed' in m for m in ros.warnings('joint_estimation_node')),
+             what='a warning about the malformed structure')
