@@ -22,10 +22,9 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from ..core.structure import StructureError, StructureParams, extract_structure
-from ..params import NODE_ONLY, structure_params_from_dict
+from ..params import structure_params_from_dict
 from ..pointcloud import CloudDecodeError, decode_xyz
-from .common import (LATCHED_QOS, STREAM_QOS, ParameterError, StampPairer, ThrottledLog, declare,
-                     declare_dataclass, run_node)
+from .common import LATCHED_QOS, STREAM_QOS, StampPairer, ThrottledLog, declare_node_parameters, run_node
 from .conversions import stamp_ns, structure_document
 
 SECTION = 'accumulator_node'
@@ -34,13 +33,7 @@ SECTION = 'accumulator_node'
 class AccumulatorNode(Node):
     def __init__(self, **kwargs):
         super().__init__('accumulator_node', **kwargs)
-        values = declare_dataclass(self, SECTION, StructureParams)
-        for name, default in NODE_ONLY[SECTION].items():
-            values[name] = declare(self, SECTION, name, default)
-        try:
-            self.params = structure_params_from_dict(values)
-        except ValueError as error:
-            raise ParameterError(str(error)) from None
+        self.params, values = declare_node_parameters(self, SECTION, StructureParams, structure_params_from_dict)
         self.window_size, self.sliding, self.stride = values['window_size'], values['sliding'], values['stride']
         self.log = ThrottledLog(self.get_logger())
         self.structure_pub = self.create_publisher(String, 'skeleton/structure', LATCHED_QOS)

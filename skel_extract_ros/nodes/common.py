@@ -64,6 +64,19 @@ def declare_dataclass(node, section: str, cls, prefix: str = '') -> dict:
     return values
 
 
+def declare_node_parameters(node, section: str, cls, build) -> tuple:
+    """Declare the method parameters (fields of `cls`) and the node's own (params.NODE_ONLY),
+    then `build(values)` -> the method's dataclass. Returns (dataclass, values)."""
+    from ..params import NODE_ONLY
+    values = declare_dataclass(node, section, cls)
+    for name, default in NODE_ONLY[section].items():
+        values[name] = declare(node, section, name, default)
+    try:
+        return build(values), values
+    except ValueError as error:
+        raise ParameterError(str(error)) from None
+
+
 def declare(node, section: str, name: str, value, kind=None, dynamic: bool = False):
     """Declare one documented parameter; returns its value. A value of the wrong type or
     out of range raises ParameterError with the name and what is expected."""

@@ -33,10 +33,9 @@ from ..core.live import LiveJointTracker
 from ..core.rigid import fit_rigid_segments
 from ..core.skeleton_model import SkeletonModel
 from ..core.structure import SkeletalStructure
-from ..params import NODE_ONLY, joint_params_from_dict
+from ..params import joint_params_from_dict
 from ..pointcloud import CloudDecodeError, decode_xyz
-from .common import (LATCHED_QOS, STREAM_QOS, ParameterError, StampPairer, ThrottledLog, declare,
-                     declare_dataclass, run_node)
+from .common import LATCHED_QOS, STREAM_QOS, StampPairer, ThrottledLog, declare_node_parameters, run_node
 from .conversions import description_document, parse_structure, pose_array, skeleton_markers, stamp_ns
 
 SECTION = 'joint_estimation_node'
@@ -45,13 +44,7 @@ SECTION = 'joint_estimation_node'
 class JointEstimationNode(Node):
     def __init__(self, **kwargs):
         super().__init__('joint_estimation_node', **kwargs)
-        values = declare_dataclass(self, SECTION, JointParams)
-        for name, default in NODE_ONLY[SECTION].items():
-            values[name] = declare(self, SECTION, name, default)
-        try:
-            self.params = joint_params_from_dict(values)
-        except ValueError as error:
-            raise ParameterError(str(error)) from None
+        self.params, values = declare_node_parameters(self, SECTION, JointParams, joint_params_from_dict)
         self.buffer_size, self.live_sweeps = values['buffer_size'], values['live_sweeps']
         self.joint_diameter = values['joint_diameter']
         self.log = ThrottledLog(self.get_logger())
