@@ -127,7 +127,7 @@ class _Recorder:
         from .pointcloud import decode_xyz
         now = time.perf_counter()
         self.writer.write(self.connections[topic], time.time_ns(), raw)
-        msg = self._deserialize(raw, _ros_type(type_name))
+        msg = None if topic == 'skeleton/markers' else self._deserialize(raw, _ros_type(type_name))
         r = self.received
         with self.condition:
             r.counts[topic] = r.counts.get(topic, 0) + 1

@@ -56,7 +56,11 @@ class Harness:
         self.wait(lambda: publisher.get_subscription_count() >= 1, timeout, 'a subscription to match')
 
     def warnings(self, node_name):
-        return [log.msg for log in list(self.logs) if log.name == node_name and log.level >= Log.WARN]
+        """Warnings of the nodes under test named `node_name`: what their ThrottledLog wrote,
+        and what reached /rosout."""
+        said = [line for node in self.nodes if node.get_name() == node_name
+                for line in list(getattr(getattr(node, 'log', None), 'history', []))]
+        return said + [log.msg for log in list(self.logs) if log.name == node_name and log.level >= Log.WARN]
 
     def call(self, service_type, name, timeout=30.0):
         client = self.probe.create_client(service_type, name)

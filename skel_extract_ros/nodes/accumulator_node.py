@@ -23,8 +23,8 @@ from std_srvs.srv import Trigger
 
 from ..core.structure import StructureError, StructureParams, extract_structure
 from ..params import structure_params_from_dict
-from ..pointcloud import CloudDecodeError, decode_xyz
-from .common import LATCHED_QOS, STREAM_QOS, StampPairer, ThrottledLog, declare_node_parameters, run_node
+from .common import (LATCHED_QOS, STREAM_QOS, StampPairer, ThrottledLog, declare_node_parameters,
+                     decode_or_warn, run_node)
 from .conversions import stamp_ns, structure_document
 
 SECTION = 'accumulator_node'
@@ -56,10 +56,8 @@ class AccumulatorNode(Node):
 
     # -- inputs ----------------------------------------------------------------------------
     def _on_rest(self, msg: PointCloud2) -> None:
-        try:
-            rest = decode_xyz(msg, dtype=np.float64)
-        except CloudDecodeError as error:
-            self.log.warn('rest', f'ignoring rest_points: {error}')
+        rest = decode_or_warn(msg, self.log, 'rest_points', np.float64)
+        if rest is None:
             return
         rest_stamp = stamp_ns(msg.header)
         with self._lock:
@@ -80,10 +78,8 @@ class AccumulatorNode(Node):
 
     def _on_registered(self, msg: PointCloud2) -> None:
         stamp = stamp_ns(msg.header)
-        try:
-            points = decode_xyz(msg)
-        except CloudDecodeError as error:
-            self.log.warn('decode', f'ignoring registered_points: {error}')
+        points = decode_or_warn(msg, self.log, 'registered_points')
+        if points is None:
             return
         if self.rest is not None and len(points) != len(self.rest):
             self.log.warn('size', f'registered_points has {len(points)} points, the rest pose '

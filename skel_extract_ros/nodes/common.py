@@ -106,6 +106,9 @@ class ThrottledLog:
         self._last = {}
         self._suppressed = {}
         self._lock = threading.Lock()
+        # the last lines written, so tests and callers can see what a node said without
+        # depending on /rosout delivery
+        self.history = collections.deque(maxlen=200)
 
     def warn(self, kind: str, message: str) -> None:
         now = time.monotonic()
@@ -117,7 +120,25 @@ class ThrottledLog:
             suppressed = self._suppressed.pop(kind, 0)
             self._last[kind] = now
         more = f' ({suppressed} more like this in the last {self._period:.0f} s)' if suppressed else ''
-        self._logger.warning(message + more)
+        self.always(message + more)
+
+    def always(self, message: str) -> None:
+        """A warning that is rare by nature (a reset, a new frame): never throttled."""
+        self.history.append(message)
+        self._logger.warning(message)
+
+
+def decode_or_warn(msg, log: ThrottledLog, what: str, dtype=None):
+    """x, y, z of a PointCloud2 from another node, or None after a throttled warning naming
+    the topic; dtype defaults to float32 (float64 for the exact rest points)."""
+    import numpy as np
+
+    from ..pointcloud import CloudDecodeError, decode_xyz
+    try:
+        return decode_xyz(msg, dtype=dtype or np.float32)
+    except CloudDecodeError as error:
+        log.warn(what, f'ignoring {what}: {error}')
+        return None
 
 
 def run_node(node_factory, args=None) -> int:

@@ -15,6 +15,7 @@ from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import ColorRGBA, Header
 from visualization_msgs.msg import Marker, MarkerArray
 
+from ..bag import stamp_to_ns
 from ..core.skeleton_model import SkeletonModel
 from ..core.structure import SkeletalStructure
 from ..pointcloud import encode_xyz
@@ -24,7 +25,7 @@ STRUCTURE_VERSION = 1
 
 def stamp_ns(header) -> int:
     """Header stamp in integer nanoseconds."""
-    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+    return stamp_to_ns(header.stamp)
 
 
 def cloud_message(points: np.ndarray, header: Header, float64: bool = False) -> PointCloud2:

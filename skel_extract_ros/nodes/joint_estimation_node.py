@@ -34,8 +34,8 @@ from ..core.rigid import fit_rigid_segments
 from ..core.skeleton_model import SkeletonModel
 from ..core.structure import SkeletalStructure
 from ..params import joint_params_from_dict
-from ..pointcloud import CloudDecodeError, decode_xyz
-from .common import LATCHED_QOS, STREAM_QOS, StampPairer, ThrottledLog, declare_node_parameters, run_node
+from .common import (LATCHED_QOS, STREAM_QOS, StampPairer, ThrottledLog, declare_node_parameters,
+                     decode_or_warn, run_node)
 from .conversions import description_document, parse_structure, pose_array, skeleton_markers, stamp_ns
 
 SECTION = 'joint_estimation_node'
@@ -71,10 +71,8 @@ class JointEstimationNode(Node):
 
     # -- inputs ----------------------------------------------------------------------------
     def _on_rest(self, msg: PointCloud2) -> None:
-        try:
-            rest = decode_xyz(msg, dtype=np.float64)
-        except CloudDecodeError as error:
-            self.log.warn('rest', f'ignoring rest_points: {error}')
+        rest = decode_or_warn(msg, self.log, 'rest_points', np.float64)
+        if rest is None:
             return
         rest_stamp = stamp_ns(msg.header)
         with self._lock:
@@ -91,20 +89,13 @@ class JointEstimationNode(Node):
         if early is not None:
             self._on_structure(early)
 
-    def _decode(self, msg, what: str):
-        try:
-            return decode_xyz(msg)
-        except CloudDecodeError as error:
-            self.log.warn(what, f'ignoring {what}: {error}')
-            return None
-
     def _on_filtered(self, msg: PointCloud2) -> None:
-        points = self._decode(msg, 'filtered_points')
+        points = decode_or_warn(msg, self.log, 'filtered_points')
         if points is not None:
             self._pair(1, msg.header, points)
 
     def _on_registered(self, msg: PointCloud2) -> None:
-        points = self._decode(msg, 'registered_points')
+        points = decode_or_warn(msg, self.log, 'registered_points')
         if points is None:
             return
         if self.rest is not None and len(points) != len(self.rest):

@@ -145,11 +145,11 @@ class RegistrationNode(Node):
                 self.log.warn('duplicate', f'ignoring a second cloud with stamp {stamp * 1e-9:.3f} s')
                 return
             if stamp < self.last_stamp:
-                self.get_logger().warning(f'stamps went back by {(self.last_stamp - stamp) * 1e-9:.3f} s '
+                self.log.always(f'stamps went back by {(self.last_stamp - stamp) * 1e-9:.3f} s '
                                           '(bag looped or clock reset): starting over with a new rest pose')
                 self._start_over()
             elif frame_id != self.frame_id:
-                self.get_logger().warning(f'frame_id changed from {self.frame_id!r} to {frame_id!r}: the '
+                self.log.always(f'frame_id changed from {self.frame_id!r} to {frame_id!r}: the '
                                           'registered points would mix coordinate frames; starting over '
                                           'with a new rest pose')
                 self._start_over()
