@@ -114,7 +114,10 @@ def test_registration_node_survives_every_bad_input(ros, arm):
     for name, bad, warning in _bad_clouds(arm.clouds[1]):
         stamp += DT
         bad.header = header(stamp)
+        done = node.processed
         pub.publish(bad)
+        # one at a time: with queue_size 1 a good cloud right behind would replace the bad one
+        ros.wait(lambda: node.processed > done, what=f'the {name} cloud handled')
         stamp += DT
         pub.publish(cloud(arm.clouds[2], stamp))
         ros.wait(lambda: stamp in stamps_of(registered), what=f'a good frame after the {name} cloud')
@@ -131,6 +134,7 @@ def test_registration_node_survives_every_bad_input(ros, arm):
     assert rests[-1].header.frame_id == 'other_frame' and registered[-1].header.frame_id == 'other_frame'
     assert any('frame_id changed' in m for m in ros.warnings('registration_node'))
     assert len(filtered) >= len(registered)
+    assert node.skipped == 0
 
 
 def test_registration_reset_service_builds_a_new_rest_pose(ros, arm):
