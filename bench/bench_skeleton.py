@@ -9,8 +9,9 @@ situation), (b) the joints after Alg. 2 (Step 3), and (c) Dem Bones' SSDR (py-de
 0.13.1) run on the same registered sequence, initialised with the Step 2 labels as hard
 weights and the Step 2 bone transforms (its own initialisation needs mesh faces; a
 nearest-neighbour triangle per point gives its weight smoothing an adjacency), its bone
-transforms then turned into joints by the same joint solve (E_Joint). Prints a Markdown
-table; `--json FILE` keeps the raw numbers. Needs the `bench` extra.
+transforms then turned into joints by the same joint solve (E_Joint); and (d) Steps 2 and
+3 again with the paper's joint anchors (the boundary centroid on the visible surface,
+anchor_depth=surface) instead of the default medial anchors. Prints a Markdown table; `--json FILE` keeps the raw numbers. Needs the `bench` extra.
 """
 from __future__ import annotations
 
@@ -25,8 +26,10 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from skel_extract_ros.core.joints import JointEstimation  # noqa: E402
 from skel_extract_ros.core.pipeline import SkeletonPipeline  # noqa: E402
-from skel_extract_ros.core.structure import boundary_centroids, joint_trajectories, solve_joints  # noqa: E402
+from skel_extract_ros.core.structure import (StructureParams, extract_structure, joint_trajectories,  # noqa: E402
+                                             solve_joints)
 from skel_extract_ros.evaluation import GroundTruth, PredictedSkeleton, evaluate_joints  # noqa: E402
 from skel_extract_ros.sim import generate_sequence  # noqa: E402
 
@@ -79,6 +82,8 @@ def main() -> int:
     parser.add_argument('--subjects', default='human,upper_body,arm,hand,fish')
     parser.add_argument('--seed', type=int, default=1)
     parser.add_argument('--no-dem-bones', action='store_true')
+    parser.add_argument('--no-surface', action='store_true',
+                        help="skip Steps 2-3 with the paper's surface anchors (anchor_depth=surface)")
     parser.add_argument('--json', default=None)
     args = parser.parse_args()
     rows = []
@@ -98,6 +103,18 @@ def main() -> int:
         entries = [('step 2 (structure)', result.step2_positions, result.structure.parents,
                     result.seconds['structure']),
                    ('step 3 (Alg. 2)', result.joint_positions, result.model.parents, result.seconds['joints'])]
+        if not args.no_surface:
+            # the paper's anchors (boundary centroids on the visible surface) on the same input
+            rest = pipeline.registration.rest_pose_.points
+            window = registered[result.frames].astype(np.float64)
+            started = time.perf_counter()
+            surface = extract_structure(rest, window, StructureParams(anchor_depth='surface'))
+            middle = time.perf_counter()
+            estimate = JointEstimation().fit(rest, window, result.observed, surface)
+            entries += [('step 2, surface anchors', surface.joint_trajectories(), surface.parents,
+                         middle - started),
+                        ('step 3, surface anchors', estimate.joint_trajectories(), estimate.parents,
+                         time.perf_counter() - middle)]
         if not args.no_dem_bones:
             started = time.perf_counter()
             positions = dem_bones_joints(pipeline.registration.rest_pose_.points,

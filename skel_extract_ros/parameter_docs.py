@@ -73,6 +73,10 @@ _ACCUMULATOR = {
                           (0.0, 1.0)),
     'joint_merge_fraction': ('paper rule 3: joints closer than this x the subject size are merged', (0.0, 1.0)),
     'eta': ('weight of the joint data term, Step 2 joint solve (Table 1)', (0.0, INF)),
+    'anchor_depth': ('joint anchors c~: medial (moved back along the camera ray to the bone\'s '
+                     'cross-section centre) or surface (the paper\'s boundary centroid)', _ANY),
+    'camera_location': ('[x, y, z] m, the sensor origin in the cloud frame (camera rays for medial anchors)',
+                        _ANY),
     'seed': ('K-means seed', (0, 2**31 - 1)),
 }
 

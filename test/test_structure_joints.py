@@ -3,11 +3,13 @@ import itertools
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from skel_extract_ros.core.joints import JointEstimation, simplex_least_squares
 from skel_extract_ros.core.rigid import fit_rigid_segments
-from skel_extract_ros.core.structure import (StructureError, StructureParams, extract_structure,
+from skel_extract_ros.core.structure import (StructureError, StructureParams, _neighbour_graph,
+                                             boundary_centroids, extract_structure, medial_anchors,
                                              solve_joints)
 from two_bone import two_bone_sequence
 
@@ -108,3 +110,52 @@ def test_mst_tree_follows_the_chain():
     degree = np.bincount(np.concatenate([np.flatnonzero(structure.parents >= 0),
                                          structure.parents[structure.parents >= 0]]), minlength=3)
     assert sorted(degree) == [1, 1, 2]
+
+
+def _visible_section(half_width, half_depth, depth=1.5, n=3000, seed=0):
+    """The camera-facing half of a bone along x with an elliptic cross-section (half-width
+    across, half-depth along the camera ray), its axis `depth` m in front of a camera at the
+    origin looking along +z: what one depth camera samples of a limb. 2 mm noise."""
+    rng = np.random.default_rng(seed)
+    theta = rng.uniform(-np.pi / 2, np.pi / 2, n)
+    points = np.column_stack([rng.uniform(-0.2, 0.2, n), half_width * np.sin(theta),
+                              depth - half_depth * np.cos(theta)])
+    return points + rng.normal(scale=0.002, size=points.shape)
+
+
+@pytest.mark.parametrize('half_width, half_depth', [(0.05, 0.05), (0.01, 0.01), (0.15, 0.08)])
+def test_medial_anchor_moves_the_surface_centroid_to_the_bone_axis(half_width, half_depth):
+    points = _visible_section(half_width, half_depth)
+    labels = np.zeros(len(points), dtype=int)
+    centroid = points.mean(axis=0, keepdims=True)
+    axis_point = np.array([0.0, 0.0, 1.5])
+    assert centroid[0, 2] - 1.5 < -0.5 * half_depth          # the paper's c~ sits in front
+    anchor = medial_anchors(labels, np.array([-1]), points, centroid, (0.0, 0.0, 0.0))[0]
+    assert abs(anchor[2] - 1.5) < 0.1 * half_width + 0.002
+    assert np.linalg.norm(anchor[:2] - centroid[0, :2]) < 1e-3  # moved along the ray only
+    assert np.linalg.norm(anchor - axis_point) < np.linalg.norm(centroid[0] - axis_point)
+
+
+def test_medial_anchor_keeps_end_on_bones_and_never_moves_towards_the_camera():
+    points = _visible_section(0.05, 0.05)
+    labels = np.zeros(len(points), dtype=int)
+    end_on = np.column_stack([points[:, 1], points[:, 2] - 1.5, points[:, 0] + 1.5])  # axis along the ray
+    anchor = end_on.mean(axis=0, keepdims=True)
+    assert np.allclose(medial_anchors(labels, np.array([-1]), end_on, anchor, (0, 0, 0)), anchor)
+    behind = np.array([[0.0, 0.0, 1.6]])                          # already behind the axis
+    assert np.allclose(medial_anchors(labels, np.array([-1]), points, behind, (0, 0, 0)), behind)
+    # a camera_location that does not fit the cloud (the section surrounds it): left alone
+    around_camera = points - [0.0, 0.0, 1.5]
+    anchor = around_camera.mean(axis=0, keepdims=True)
+    assert np.allclose(medial_anchors(labels, np.array([-1]), around_camera, anchor, (0, 0, 0)), anchor)
+
+
+def test_surface_anchors_are_the_paper_boundary_centroids():
+    rest, registered, _, _, _ = two_bone_sequence()
+    surface = extract_structure(rest, registered, StructureParams(anchor_depth='surface'))
+    spacing = np.median(cKDTree(rest).query(rest, k=2)[0][:, 1])
+    adjacency = _neighbour_graph(rest, StructureParams().neighbour_radius_factor * spacing)
+    expected = boundary_centroids(surface.labels, surface.parents, adjacency, rest)
+    assert np.allclose(surface.boundary_centroids, expected)
+    with pytest.raises(ValueError, match='anchor_depth'):
+        StructureParams(anchor_depth='deep')

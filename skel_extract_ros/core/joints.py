@@ -30,6 +30,8 @@ M-step blocks, each solved exactly:
 from __future__ import annotations
 
 import itertools
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -168,32 +170,42 @@ class JointEstimation:
         energies = []
         previous = None          # (data terms, E_Joint, alpha) of the previous iterate
         deformed = self._deform(rest, rotations, translations, influences, weights)
-        for _ in range(p.max_iterations):
-            stats = [gmm_posteriors(v, x, t, p.omega, p.e_step_neighbours, p.truncation_sigmas)
-                     if len(v) else None for v, x, t in zip(observed, deformed, tau)]
-            P1 = np.stack([s.P1 if s else np.zeros(M) for s in stats])              # (F, M)
-            targets = np.stack([s.targets() if s else np.zeros((M, 3)) for s in stats])
-            data = sum(s.nll for s in stats if s) + 0.5 * p.zeta * np.sum((registered - deformed) ** 2)
-            joint_term = self._joint_energy(rotations, translations, joints, anchors, edges, p.eta)
-            energies.append(float(data + 0.5 * alpha * joint_term))
-            # alpha grows every iteration, so consecutive totals differ even at a fixed point:
-            # the convergence test compares the two iterates under the same (previous) alpha.
-            if previous is not None:
-                before = previous[0] + 0.5 * previous[2] * previous[1]
-                after = data + 0.5 * previous[2] * joint_term
-                if abs(before - after) <= p.tolerance * abs(after):
-                    break
-            previous = (data, joint_term, alpha)
-            a = P1 / tau[:, None]                                                    # (F, M)
-            positions = self.bone_positions(rest, rotations, translations)
-            influences, weights = self._update_weights(registered, targets, a, positions, k)
-            self.update_bones(rest, registered, targets, a, rotations, translations, influences, weights,
-                               joints, edges, alpha, positions)
-            joints = solve_joints(rotations, translations, parents, anchors, p.eta)
-            deformed = self._deform(rest, rotations, translations, influences, weights)
-            tau = np.array([max(s.squared_residual(x) / (3.0 * max(s.Np, 1e-12)), p.min_tau) if s else t
-                            for s, x, t in zip(stats, deformed, tau)])
-            alpha *= p.alpha_growth
+        # The E-step is two thirds of the time and independent per frame; the k-d tree
+        # queries and numpy reductions release the GIL, so threads use every core.
+        pool = ThreadPoolExecutor(max_workers=min(os.cpu_count() or 1, 8))
+
+        def e_step(frame):
+            v = observed[frame]
+            return gmm_posteriors(v, deformed[frame], tau[frame], p.omega, p.e_step_neighbours,
+                                  p.truncation_sigmas) if len(v) else None
+        try:
+            for _ in range(p.max_iterations):
+                stats = list(pool.map(e_step, range(F)))
+                P1 = np.stack([s.P1 if s else np.zeros(M) for s in stats])              # (F, M)
+                targets = np.stack([s.targets() if s else np.zeros((M, 3)) for s in stats])
+                data = sum(s.nll for s in stats if s) + 0.5 * p.zeta * np.sum((registered - deformed) ** 2)
+                joint_term = self._joint_energy(rotations, translations, joints, anchors, edges, p.eta)
+                energies.append(float(data + 0.5 * alpha * joint_term))
+                # alpha grows every iteration, so consecutive totals differ even at a fixed point:
+                # the convergence test compares the two iterates under the same (previous) alpha.
+                if previous is not None:
+                    before = previous[0] + 0.5 * previous[2] * previous[1]
+                    after = data + 0.5 * previous[2] * joint_term
+                    if abs(before - after) <= p.tolerance * abs(after):
+                        break
+                previous = (data, joint_term, alpha)
+                a = P1 / tau[:, None]                                                    # (F, M)
+                positions = self.bone_positions(rest, rotations, translations)
+                influences, weights = self._update_weights(registered, targets, a, positions, k)
+                self.update_bones(rest, registered, targets, a, rotations, translations, influences, weights,
+                                   joints, edges, alpha, positions)
+                joints = solve_joints(rotations, translations, parents, anchors, p.eta)
+                deformed = self._deform(rest, rotations, translations, influences, weights)
+                tau = np.array([max(s.squared_residual(x) / (3.0 * max(s.Np, 1e-12)), p.min_tau) if s else t
+                                for s, x, t in zip(stats, deformed, tau)])
+                alpha *= p.alpha_growth
+        finally:
+            pool.shutdown()
         return JointEstimate(influences, weights, rotations, translations, joints, parents, tau, energies)
 
     # ------------------------------------------------------------------------------------

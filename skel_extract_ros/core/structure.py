@@ -27,6 +27,14 @@
 5. Initial joint locations c_jk minimise E_Joint (Sec. 6) for the fitted transforms:
    eta |c - c~|^2 + sum_t |(R_j^t - R_k^t) c + T_j^t - T_k^t|^2, c~ the centroid of the
    boundary points between the two bones; a 3 x 3 solve per joint.
+
+Deviation (anchor_depth='medial', the default): one depth camera sees only the front of
+each limb, so the boundary centroid c~ lies on the visible surface, about a limb radius in
+front of the joint, and wherever the motion leaves a joint's depth unconstrained (a hinge
+whose axis points at the camera, a root bone's centre) E_Joint puts the joint there too.
+`medial_anchors` moves each c~ back along its camera ray to the depth of the bone's
+cross-section centre, fitted to the visible half of that cross-section (see there). The
+paper's plain centroid is anchor_depth='surface'; bench/README.md measures both.
 """
 from __future__ import annotations
 
@@ -58,6 +66,9 @@ class StructureParams:
     min_bone_fraction, motion_noise_factor, min_motion_fraction, leaf_min_fraction,
         joint_merge_fraction: refinement thresholds (see the module docstring).
     eta: weight of the joint data term (Table 1).
+    anchor_depth: 'medial' (c~ moved back to the bone's cross-section centre, see
+        `medial_anchors`) or 'surface' (the paper's boundary centroid as is).
+    camera_location: (3,) sensor origin in the cloud frame (m), for the camera rays.
     seed: K-means seed.
     """
 
@@ -72,11 +83,17 @@ class StructureParams:
     leaf_min_fraction: float = 0.02
     joint_merge_fraction: float = 0.03
     eta: float = 1.0
+    anchor_depth: str = 'medial'
+    camera_location: tuple = (0.0, 0.0, 0.0)
     seed: int = 0
 
     def __post_init__(self):
         if self.cluster_on not in ('trajectories', 'rest'):
             raise ValueError(f"cluster_on must be 'trajectories' or 'rest', got {self.cluster_on!r}")
+        if self.anchor_depth not in ('medial', 'surface'):
+            raise ValueError(f"anchor_depth must be 'medial' or 'surface', got {self.anchor_depth!r}")
+        if len(self.camera_location) != 3:
+            raise ValueError(f'camera_location must be [x, y, z], got {list(self.camera_location)}')
         if self.n_clusters < 2 or self.n_rounds < 0:
             raise ValueError('n_clusters must be >= 2 and n_rounds >= 0')
 
@@ -88,7 +105,8 @@ class SkeletalStructure:
     labels: (M,) bone of each rest point; parents: (B,) parent bone (-1 for the root);
     rotations (F, B, 3, 3) and translations (F, B, 3): bone transforms, rest -> frame;
     joints: (B, 3) rest-frame joint between each bone and its parent (for the root: its
-    centre); boundary_centroids: (B, 3) the c~ of each joint (root: its centre).
+    centre); boundary_centroids: (B, 3) the anchor c~ of each joint (root: its centre),
+    moved to the medial depth unless anchor_depth is 'surface'.
     """
 
     labels: np.ndarray
@@ -229,6 +247,67 @@ def boundary_centroids(labels, parents, adjacency, rest) -> np.ndarray:
     return result
 
 
+def medial_anchors(labels, parents, rest, anchors, camera_location, min_section_points: int = 60) -> np.ndarray:
+    """(B, 3) the anchors (B, 3) moved back along their camera rays to the depth of the
+    centre of their bone's cross-section (for the root: of the root bone itself).
+
+    The cross-section is the slab of the bone's rest points (M, 3) across its main axis
+    (first principal direction) around the anchor: 10 % of the bone's length, at least
+    `min_section_points` points. One camera samples only its front half: across the bone
+    (perpendicular to the axis and the ray) the section spans [middle - a, middle + a]
+    (2nd-98th percentile), and an elliptic section with its depth axis along the ray gives
+    depth(s) = centre - b sqrt(1 - (s - middle)^2 / a^2) for every visible point; centre and
+    half-depth b come from one linear least-squares fit, so a flat section (a torso) is not
+    taken for a round one. Anchors only move away from the camera and by at most a. Bones
+    seen end-on (axis along the ray) and sections not clearly in front of the camera keep
+    their anchor.
+    """
+    camera = np.asarray(camera_location, dtype=np.float64)
+    result = anchors.copy()
+    for bone in range(len(parents)):  # loop over bones (a few dozen), vectorised over points
+        points = rest[labels == bone]
+        if len(points) < 10:
+            continue
+        anchor = anchors[bone]
+        ray = anchor - camera
+        ray /= max(np.linalg.norm(ray), 1e-12)
+        axis = np.linalg.svd(points - points.mean(axis=0), full_matrices=False)[2][0]
+        axis = axis - ray * (axis @ ray)
+        if np.linalg.norm(axis) < 0.3:   # bone points at the camera: its section is not seen
+            continue
+        axis /= np.linalg.norm(axis)
+        lateral = np.cross(ray, axis)
+        along = np.abs((points - anchor) @ axis)
+        kth = min(len(along), min_section_points) - 1
+        half_slab = max(0.1 * np.ptp(points @ axis), np.partition(along, kth)[kth])
+        section = points[along <= half_slab]
+        across = (section - anchor) @ lateral
+        depth = (section - camera) @ ray
+        low, high = np.percentile(across, [2.0, 98.0])
+        half_width, middle = 0.5 * (high - low), 0.5 * (high + low)
+        # a section reaching to within its own half-width of the camera (or behind it): the
+        # cloud is not in the camera's frame or camera_location is wrong; the front-half
+        # model does not hold
+        if half_width <= 0 or len(section) < 5 or depth.min() <= half_width:
+            continue
+        # depth = centre_depth - half_depth * sqrt(1 - (across - middle)^2 / half_width^2):
+        # linear in (centre_depth, half_depth), exact for a round or elliptic section
+        profile = np.sqrt(np.clip(1.0 - ((across - middle) / half_width) ** 2, 0.0, 1.0))
+        design = np.column_stack([np.ones_like(profile), -profile])
+        centre_depth = float(np.linalg.lstsq(design, depth, rcond=None)[0][0])
+        shift = np.clip(centre_depth - (anchor - camera) @ ray, 0.0, half_width)
+        result[bone] = anchor + shift * ray
+    return result
+
+
+def _anchors(labels, parents, adjacency, rest, params: 'StructureParams') -> np.ndarray:
+    """(B, 3) the joint anchors c~ as the parameters ask for."""
+    anchors = boundary_centroids(labels, parents, adjacency, rest)
+    if params.anchor_depth == 'medial':
+        anchors = medial_anchors(labels, parents, rest, anchors, params.camera_location)
+    return anchors
+
+
 def extract_structure(rest: np.ndarray, registered: np.ndarray,
                       params: StructureParams | None = None) -> SkeletalStructure:
     """Bones and bone tree from rest points (M, 3) and their registered sequence (F, M, 3)."""
@@ -284,7 +363,7 @@ def extract_structure(rest: np.ndarray, registered: np.ndarray,
                     remove = int(b)
                     break
         if remove is None:
-            anchors = boundary_centroids(labels, parents, adjacency, rest)
+            anchors = _anchors(labels, parents, adjacency, rest, params)
             joints = solve_joints(rotations, translations, parents, anchors, params.eta)
             for b in np.flatnonzero(parents >= 0):
                 p = parents[b]
@@ -303,6 +382,6 @@ def extract_structure(rest: np.ndarray, registered: np.ndarray,
     if B < 2:
         raise StructureError('the motion is too small to separate any bones: every part '
                              'of the subject moves rigidly together')
-    anchors = boundary_centroids(labels, parents, adjacency, rest)
+    anchors = _anchors(labels, parents, adjacency, rest, params)
     joints = solve_joints(rotations, translations, parents, anchors, params.eta)
     return SkeletalStructure(labels, parents, rotations, translations, joints, anchors)
