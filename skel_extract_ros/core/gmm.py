@@ -43,19 +43,35 @@ class GMMStatistics:
                      + np.sum(self.P1 * np.sum(centroids ** 2, axis=1)))
 
 
-def gmm_posteriors(observed: np.ndarray, centroids: np.ndarray, sigma2: float, omega: float,
-                   n_neighbours: int = 8, truncation_sigmas: float = 4.0) -> GMMStatistics:
-    """E-step: observed (N, 3), centroids (M, 3), sigma2 (m^2) -> GMMStatistics."""
+def nearest_centroids(observed: np.ndarray, centroids: np.ndarray, n_neighbours: int = 8,
+                      radius: float = np.inf) -> np.ndarray:
+    """(N, K) indices of each observation's K nearest centroids within `radius` (m); M where
+    there are fewer. observed (N, 3), centroids (M, 3)."""
     M, N = len(centroids), len(observed)
     K = min(n_neighbours, M)
     # The k-d tree is over the centroids and rebuilt per call; its query cost does not grow
     # with sigma, unlike a fixed-radius search that visits every centroid in the ball.
-    radius = truncation_sigmas * np.sqrt(sigma2)
     # One worker: for a few thousand queries, thread start-up costs more than it saves.
-    d, idx = cKDTree(centroids).query(observed, k=K, distance_upper_bound=radius)
-    d, idx = d.reshape(N, K), idx.reshape(N, K)
-    found = idx < M
-    gauss = np.where(found, np.exp(-np.where(found, d, 0.0) ** 2 / (2.0 * sigma2)), 0.0)
+    _, idx = cKDTree(centroids).query(observed, k=K, distance_upper_bound=radius)
+    return idx.reshape(N, K)
+
+
+def gmm_posteriors(observed: np.ndarray, centroids: np.ndarray, sigma2: float, omega: float,
+                   n_neighbours: int = 8, truncation_sigmas: float = 4.0,
+                   candidates: np.ndarray | None = None) -> GMMStatistics:
+    """E-step: observed (N, 3), centroids (M, 3), sigma2 (m^2) -> GMMStatistics.
+
+    candidates: (N, K) centroid indices from `nearest_centroids` to use instead of a new
+    query (M = none); the posteriors are exact over them, with the truncation radius applied.
+    """
+    M, N = len(centroids), len(observed)
+    radius = truncation_sigmas * np.sqrt(sigma2)
+    idx = nearest_centroids(observed, centroids, n_neighbours, radius) if candidates is None else candidates
+    valid = idx < M
+    safe = np.where(valid, idx, 0)
+    d2 = np.sum((centroids[safe] - observed[:, None, :]) ** 2, axis=2)
+    found = valid & (d2 <= radius ** 2)
+    gauss = np.where(found, np.exp(-np.where(found, d2, 0.0) / (2.0 * sigma2)), 0.0)
     row_sum = gauss.sum(axis=1)
     c = (2.0 * np.pi * sigma2) ** 1.5 * omega * M / ((1.0 - omega) * N)
     posteriors = gauss / (row_sum + c)[:, None]
