@@ -8,7 +8,7 @@ from scipy.spatial.transform import Rotation
 
 from skel_extract_ros.core.joints import JointEstimation, simplex_least_squares
 from skel_extract_ros.core.rigid import fit_rigid_segments
-from skel_extract_ros.core.structure import (StructureError, StructureParams, _neighbour_graph,
+from skel_extract_ros.core.structure import (StructureError, StructureParams, _neighbour_graph, _residuals,
                                              boundary_centroids, extract_structure, medial_anchors,
                                              solve_joints)
 from two_bone import two_bone_sequence
@@ -159,3 +159,21 @@ def test_surface_anchors_are_the_paper_boundary_centroids():
     assert np.allclose(surface.boundary_centroids, expected)
     with pytest.raises(ValueError, match='anchor_depth'):
         StructureParams(anchor_depth='deep')
+
+
+def test_expanded_residuals_equal_the_direct_sums():
+    """Step 2's residuals and Alg. 2's single-bone costs are computed by expanding the
+    squares into matrix products; both must equal the direct per-frame, per-bone sums."""
+    rng = np.random.default_rng(0)
+    F, M, S = 7, 50, 4
+    rest = rng.normal(size=(M, 3))
+    registered = rng.normal(size=(F, M, 3))
+    rotations = Rotation.random(F * S, random_state=1).as_matrix().reshape(F, S, 3, 3)
+    translations = rng.normal(size=(F, S, 3))
+    moved = np.einsum('tsij,mj->tsmi', rotations, rest) + translations[:, :, None, :]   # (F, S, M, 3)
+    direct = np.sum((registered[:, None] - moved) ** 2, axis=(0, 3)).T                   # (M, S)
+    assert np.allclose(_residuals(rest, registered, rotations, translations), direct, atol=1e-10)
+    c = rng.uniform(0.5, 2.0, size=(F, M))
+    weighted = np.einsum('tm,tsm->ms', c, np.sum((registered[:, None] - moved) ** 2, axis=3))
+    costs = JointEstimation.single_bone_costs(rest, rotations, translations, c, registered)
+    assert np.allclose(costs, weighted, atol=1e-9)

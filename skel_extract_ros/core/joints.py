@@ -212,7 +212,8 @@ class JointEstimation:
                 previous = (data, joint_term, alpha)
                 a = P1 / tau[:, None]                                                    # (F, M)
                 positions = self.bone_positions(rest, rotations, translations)
-                influences, weights = self._update_weights(registered, targets, a, positions, k)
+                influences, weights = self._update_weights(rest, rotations, translations, registered, targets,
+                                                              a, positions, k)
                 self.update_bones(rest, registered, targets, a, rotations, translations, influences, weights,
                                    joints, edges, alpha, positions)
                 joints = solve_joints(rotations, translations, parents, anchors, p.eta)
@@ -256,14 +257,31 @@ class JointEstimation:
                - np.einsum('feij,ej->fei', rotations[:, parent], c) - translations[:, parent])
         return float(np.sum(gap ** 2) + eta * np.sum((c - anchors[child]) ** 2))
 
-    def _update_weights(self, registered, targets, a, positions, k):
+    @staticmethod
+    def single_bone_costs(rest, rotations, translations, c, z) -> np.ndarray:
+        """(M, B) sum_t c_tm |z_tm - (R_b^t q_m + T_b^t)|^2 for rest (M, 3), rotations
+        (F, B, 3, 3), translations (F, B, 3), c (F, M), z (F, M, 3): expanded into matrix
+        products rather than forming every point under every bone (half the weight step)."""
+        F, M = c.shape
+        B = rotations.shape[1]
+        weighted = (c[..., None] * z).transpose(1, 0, 2).reshape(M, F * 3)          # c z, (M, 3F)
+        rotated = (weighted @ rotations.transpose(0, 2, 1, 3).reshape(F * 3, B * 3)).reshape(M, B, 3)
+        carried = np.einsum('tbij,tbi->tbj', rotations, translations).reshape(F, B * 3)   # R^T T
+        return (np.sum(c * np.sum(z ** 2, axis=2), axis=0)[:, None]
+                - 2.0 * np.einsum('mbj,mj->mb', rotated, rest)
+                - 2.0 * weighted @ translations.transpose(0, 2, 1).reshape(F * 3, B)
+                + (np.sum(rest ** 2, axis=1) * c.sum(axis=0))[:, None]
+                + c.T @ np.sum(translations ** 2, axis=2)
+                + 2.0 * np.einsum('mbj,mj->mb', (c.T @ carried).reshape(M, B, 3), rest))
+
+    def _update_weights(self, rest, rotations, translations, registered, targets, a, positions, k):
         """Per point: the k bones with the smallest single-bone objective, then the exact
         simplex-constrained least squares on them. positions: (F, B, M, 3) bone positions."""
         zeta = self.params.zeta
         F, M, _ = registered.shape
         c = a + zeta                                                                  # (F, M)
         z = (a[..., None] * targets + zeta * registered) / c[..., None]               # (F, M, 3)
-        single = np.einsum('fm,fbm->mb', c, np.sum((z[:, None] - positions) ** 2, axis=3))
+        single = self.single_bone_costs(rest, rotations, translations, c, z)
         influences = np.argsort(single, axis=1)[:, :k]
         chosen = self._gather(positions, influences)                                  # (F, M, k, 3)
         per_point = chosen.transpose(1, 2, 0, 3).reshape(M, k, F * 3)                 # (M, k, 3F)
