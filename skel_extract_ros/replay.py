@@ -216,9 +216,15 @@ def replay(input_path, out, rate: float = 1.0, topic: str | None = None, params_
                     raise ReplayError(f'{name} exited with code {process.returncode}: '
                                       f'{_log_tail(out / "logs" / f"{name}.log")}')
 
+        # Every link between the nodes must be up too, not only ours: a volatile stream
+        # loses what is published before its subscriber is discovered (the joint node
+        # once missed the first five registered frames that way).
+        internal = {'rest_points': 3, 'registered_points': 3, 'filtered_points': 3, 'skeleton/structure': 2}
+
         def connected():
             return (recorder.publisher.get_subscription_count() >= 1
-                    and all(node.count_publishers(t) >= 1 for t, _, _ in OUTPUT_TOPICS))
+                    and all(node.count_publishers(t) >= 1 for t, _, _ in OUTPUT_TOPICS)
+                    and all(node.count_subscribers(t) >= n for t, n in internal.items()))
         if not recorder.wait_for(connected, 120.0, alive):
             raise ReplayError('the nodes did not come up within 120 s (see DIR/logs)')
 
