@@ -83,7 +83,8 @@ def test_run_on_the_sample_bag_end_to_end(sample_run, sample_bag):
     report = json.loads(done.stdout)
     assert report['registration']['mean_error_m'] < 0.03, report['registration']
     joints = report['joints']
-    assert joints['recall'] >= 0.5 and joints['mean_error_m'] < 0.11 and joints['normalized_error_m'] < 0.04, joints
+    # measured 0.072 m (repeatable run to run); the paper's surface anchors give 0.083 m
+    assert joints['recall'] >= 0.5 and joints['mean_error_m'] < 0.08 and joints['normalized_error_m'] < 0.04, joints
 
 
 def test_run_says_plainly_when_nothing_moves(tmp_path):

@@ -48,7 +48,8 @@ def test_replay_sample_bag_records_every_topic_and_matches_run(tmp_path, sample_
     report = json.loads(done.stdout)
     assert report['registration']['mean_error_m'] < 0.03
     joints = report['joints']
-    assert joints['recall'] >= 0.5 and joints['mean_error_m'] < 0.11 and joints['normalized_error_m'] < 0.04, joints
+    # measured 0.072 m (repeatable run to run); the paper's surface anchors give 0.083 m
+    assert joints['recall'] >= 0.5 and joints['mean_error_m'] < 0.08 and joints['normalized_error_m'] < 0.04, joints
     assert (out / 'skeleton.png').stat().st_size > 10_000
 
 
