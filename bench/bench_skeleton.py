@@ -11,7 +11,8 @@ weights and the Step 2 bone transforms (its own initialisation needs mesh faces;
 nearest-neighbour triangle per point gives its weight smoothing an adjacency), its bone
 transforms then turned into joints by the same joint solve (E_Joint); and (d) Steps 2 and
 3 again with the paper's joint anchors (the boundary centroid on the visible surface,
-anchor_depth=surface) instead of the default medial anchors. Prints a Markdown table; `--json FILE` keeps the raw numbers. Needs the `bench` extra.
+anchor_depth=surface) instead of the default medial anchors. Prints a Markdown table;
+`--json FILE` keeps the raw numbers. Needs the `bench` extra.
 """
 from __future__ import annotations
 

@@ -189,7 +189,7 @@ class JointEstimation:
                 return None
             radius = p.truncation_sigmas * np.sqrt(tau[frame])
             if (candidates[frame] is None or radius > queried_at[frame][1]
-                    or np.max(np.linalg.norm(deformed[frame] - queried_at[frame][0], axis=1)) > 1.0 * spacing):
+                    or np.max(np.linalg.norm(deformed[frame] - queried_at[frame][0], axis=1)) > spacing):
                 candidates[frame] = nearest_centroids(v, deformed[frame], p.e_step_neighbours, 1.5 * radius)
                 queried_at[frame] = (deformed[frame].copy(), 1.5 * radius)
             return gmm_posteriors(v, deformed[frame], tau[frame], p.omega, p.e_step_neighbours,
