@@ -304,36 +304,35 @@ class JointEstimation:
         contributions = weights[None, :, :, None] * self._gather(positions, influences)
         deformed = contributions.sum(axis=2)                                          # (F, M, 3)
         for bone in range(B):  # loop over bones (a few dozen), vectorised over frames and points
+            # each point lists a bone at most once, so m has no repeats
             m, slot = np.nonzero((influences == bone) & (weights > 1e-8))
             w = weights[m, slot]
+            points = rest[m]                                                          # (P, 3)
             others = deformed[:, m] - contributions[:, m, slot]                       # (F, P, 3)
-            a_points = np.broadcast_to(rest[m], (F, len(m), 3))
-            b_register = (registered[:, m] - others) / w[None, :, None]
-            b_data = (targets[:, m] - others) / w[None, :, None]
-            lam_register = np.broadcast_to(p.zeta * w ** 2, (F, len(m)))
-            lam_data = a[:, m] * w[None, :] ** 2
-            a_terms = [a_points, a_points]
-            b_terms = [b_register, b_data]
-            lam_terms = [lam_register, lam_data]
+            # The registration and data terms share a = q_m, so they add up to one term with
+            # lambda = zeta w^2 + a w^2 and lambda b = w (zeta (y - u) + a (x~ - u)).
+            lam_points = (p.zeta + a[:, m]) * w[None, :] ** 2                          # (F, P)
+            lam_b = w[None, :, None] * (p.zeta * (registered[:, m] - others)
+                                        + a[:, m, None] * (targets[:, m] - others))   # (F, P, 3)
+            total = lam_points.sum(axis=1) + p.gamma                                   # E_small: a = 0
+            sum_a = lam_points @ points                                               # (F, 3)
+            sum_b = lam_b.sum(axis=1) + p.gamma * translations[:, bone]
+            sum_ab = np.transpose(lam_b, (0, 2, 1)) @ points                          # (F, 3, 3), transposed
             for other, joint_bone in neighbours[bone]:
                 c = joints[joint_bone]
-                a_terms.append(np.broadcast_to(c, (F, 1, 3)))
-                b_terms.append((np.einsum('fij,j->fi', rotations[:, other], c) + translations[:, other])[:, None, :])
-                lam_terms.append(np.full((F, 1), alpha))
-            a_terms.append(np.zeros((F, 1, 3)))
-            b_terms.append(translations[:, bone][:, None, :])
-            lam_terms.append(np.full((F, 1), p.gamma))
-            A = np.concatenate(a_terms, axis=1)
-            Bv = np.concatenate(b_terms, axis=1)
-            lam = np.concatenate(lam_terms, axis=1)
-            total = lam.sum(axis=1)
-            mu_a = np.einsum('fp,fpi->fi', lam, A) / total[:, None]
-            mu_b = np.einsum('fp,fpi->fi', lam, Bv) / total[:, None]
-            Z = np.transpose(lam[..., None] * (A - mu_a[:, None]), (0, 2, 1)) @ (Bv - mu_b[:, None])
+                target = np.einsum('fij,j->fi', rotations[:, other], c) + translations[:, other]   # (F, 3)
+                total = total + alpha
+                sum_a = sum_a + alpha * c
+                sum_b = sum_b + alpha * target
+                sum_ab = sum_ab + alpha * target[:, :, None] * c[None, None, :]
+            mu_a = sum_a / total[:, None]
+            mu_b = sum_b / total[:, None]
+            # sum lambda (a - mu_a)(b - mu_b)^T = sum lambda a b^T - total mu_a mu_b^T
+            Z = np.transpose(sum_ab, (0, 2, 1)) - total[:, None, None] * mu_a[:, :, None] * mu_b[:, None, :]
             Z += p.gamma * np.transpose(rotations[:, bone], (0, 2, 1))
             R = rotations_from_h(Z)
             rotations[:, bone] = R
             translations[:, bone] = mu_b - np.einsum('fij,fj->fi', R, mu_a)
-            new = w[None, :, None] * (rest[m] @ np.transpose(R, (0, 2, 1)) + translations[:, bone][:, None, :])
+            new = w[None, :, None] * (points @ np.transpose(R, (0, 2, 1)) + translations[:, bone][:, None, :])
             contributions[:, m, slot] = new
-            deformed[:, np.unique(m)] = contributions[:, np.unique(m)].sum(axis=2)
+            deformed[:, m] = others + new
