@@ -24,7 +24,7 @@ from std_srvs.srv import Trigger
 from ..core.structure import StructureError, StructureParams, extract_structure
 from ..params import structure_params_from_dict
 from .common import (LATCHED_QOS, STREAM_QOS, StampPairer, ThrottledLog, declare_node_parameters,
-                     decode_or_warn, run_node)
+                     decode_or_warn, decode_registered_or_warn, run_node)
 from .conversions import stamp_ns, structure_document
 
 SECTION = 'accumulator_node'
@@ -78,12 +78,8 @@ class AccumulatorNode(Node):
 
     def _on_registered(self, msg: PointCloud2) -> None:
         stamp = stamp_ns(msg.header)
-        points = decode_or_warn(msg, self.log, 'registered_points')
+        points = decode_registered_or_warn(msg, self.log, self.rest)
         if points is None:
-            return
-        if self.rest is not None and len(points) != len(self.rest):
-            self.log.warn('size', f'registered_points has {len(points)} points, the rest pose '
-                                  f'{len(self.rest)}: ignored')
             return
         pair = self.pairer.add(0, stamp, points)
         if pair is not None:

@@ -141,6 +141,16 @@ def decode_or_warn(msg, log: ThrottledLog, what: str, dtype=None):
         return None
 
 
+def decode_registered_or_warn(msg, log: ThrottledLog, rest):
+    """(M, 3) float32 registered_points, or None after a throttled warning when the cloud
+    does not decode or its size is not the rest pose's (rest: (M, 3) or None, not known yet)."""
+    points = decode_or_warn(msg, log, 'registered_points')
+    if points is not None and rest is not None and len(points) != len(rest):
+        log.warn('size', f'registered_points has {len(points)} points, the rest pose {len(rest)}: ignored')
+        return None
+    return points
+
+
 def run_node(node_factory, args=None) -> int:
     """The demo_nodes_py main: spin until Ctrl-C or shutdown, no traceback. Parameter
     errors end the node with one line and exit code 2."""

@@ -35,7 +35,7 @@ from ..core.skeleton_model import SkeletonModel
 from ..core.structure import SkeletalStructure
 from ..params import joint_params_from_dict
 from .common import (LATCHED_QOS, STREAM_QOS, StampPairer, ThrottledLog, declare_node_parameters,
-                     decode_or_warn, run_node)
+                     decode_or_warn, decode_registered_or_warn, run_node)
 from .conversions import description_document, parse_structure, pose_array, skeleton_markers, stamp_ns
 
 SECTION = 'joint_estimation_node'
@@ -95,12 +95,8 @@ class JointEstimationNode(Node):
             self._pair(1, msg.header, points)
 
     def _on_registered(self, msg: PointCloud2) -> None:
-        points = decode_or_warn(msg, self.log, 'registered_points')
+        points = decode_registered_or_warn(msg, self.log, self.rest)
         if points is None:
-            return
-        if self.rest is not None and len(points) != len(self.rest):
-            self.log.warn('size', f'registered_points has {len(points)} points, the rest pose '
-                                  f'{len(self.rest)}: ignored')
             return
         stamp = stamp_ns(msg.header)
         with self._lock:
