@@ -47,13 +47,18 @@ def nearest_centroids(observed: np.ndarray, centroids: np.ndarray, n_neighbours:
                       radius: float = np.inf) -> np.ndarray:
     """(N, K) indices of each observation's K nearest centroids within `radius` (m); M where
     there are fewer. observed (N, 3), centroids (M, 3)."""
+    return _query(observed, centroids, n_neighbours, radius)[1]
+
+
+def _query(observed, centroids, n_neighbours, radius):
+    """(distances (N, K) m, inf where none; indices (N, K), M where none)."""
     M, N = len(centroids), len(observed)
     K = min(n_neighbours, M)
     # The k-d tree is over the centroids and rebuilt per call; its query cost does not grow
     # with sigma, unlike a fixed-radius search that visits every centroid in the ball.
     # One worker: for a few thousand queries, thread start-up costs more than it saves.
-    _, idx = cKDTree(centroids).query(observed, k=K, distance_upper_bound=radius)
-    return idx.reshape(N, K)
+    distances, idx = cKDTree(centroids).query(observed, k=K, distance_upper_bound=radius)
+    return distances.reshape(N, K), idx.reshape(N, K)
 
 
 def gmm_posteriors(observed: np.ndarray, centroids: np.ndarray, sigma2: float, omega: float,
@@ -66,11 +71,15 @@ def gmm_posteriors(observed: np.ndarray, centroids: np.ndarray, sigma2: float, o
     """
     M, N = len(centroids), len(observed)
     radius = truncation_sigmas * np.sqrt(sigma2)
-    idx = nearest_centroids(observed, centroids, n_neighbours, radius) if candidates is None else candidates
-    valid = idx < M
-    safe = np.where(valid, idx, 0)
-    d2 = np.sum((centroids[safe] - observed[:, None, :]) ** 2, axis=2)
-    found = valid & (d2 <= radius ** 2)
+    if candidates is None:   # a fresh query already gives the distances
+        distances, idx = _query(observed, centroids, n_neighbours, radius)
+        found = idx < M
+        d2 = np.where(found, distances, 0.0) ** 2
+    else:
+        idx = candidates
+        valid = idx < M
+        d2 = np.sum((centroids[np.where(valid, idx, 0)] - observed[:, None, :]) ** 2, axis=2)
+        found = valid & (d2 <= radius ** 2)
     gauss = np.where(found, np.exp(-np.where(found, d2, 0.0) / (2.0 * sigma2)), 0.0)
     row_sum = gauss.sum(axis=1)
     c = (2.0 * np.pi * sigma2) ** 1.5 * omega * M / ((1.0 - omega) * N)
