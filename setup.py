@@ -30,6 +30,7 @@ setup(
         'matplotlib>=3.7',
         'PyYAML>=6.0',
         'tqdm>=4.60',
+        'bvhio>=1.5',
     ],
     extras_require={
         # benchmark-only peers: Coherent Point Drift implementations and Dem Bones (SSDR)

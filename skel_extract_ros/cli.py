@@ -18,26 +18,57 @@ class UserError(Exception):
     """An error caused by the user's input: reported as one line, no traceback."""
 
 
-def _cmd_simulate(args) -> int:
+def _simulate_sequence(args):
+    """The sequence `simulate` asked for: a built-in subject, a BVH clip, a rig or a mesh
+    sequence (exactly one)."""
     from .sim import NoiseModel, generate_sequence
+    from .sim import sources
+
+    noise = NoiseModel.kinect() if args.noise == 'kinect' else NoiseModel.none()
+    chosen = [name for name in ('subject', 'bvh', 'rig', 'mesh_sequence') if getattr(args, name)]
+    if len(chosen) != 1:
+        raise UserError('give exactly one of --subject, --bvh, --rig, --mesh-sequence')
+    frames = args.frames if args.frames is not None else 90
+    if frames < 2:
+        raise UserError(f'--frames must be at least 2, got {frames}')
+    if args.walk_in < 0:
+        raise UserError(f'--walk-in must be 0 or more frames, got {args.walk_in}')
+    options = dict(resolution=args.resolution, noise=noise, scene=args.scene, seed=args.seed,
+                   enter_frames=args.walk_in, surface_samples=args.surface_samples)
+    if args.subject:
+        if args.start is not None or args.distance is not None or args.azimuth or args.treadmill:
+            raise UserError('--start, --distance, --azimuth and --treadmill apply to --bvh, --rig and '
+                            '--mesh-sequence; a built-in subject has its own camera')
+        return generate_sequence(args.subject, frames, **options)
+    view = dict(distance=args.distance if args.distance is not None else 3.0, azimuth=args.azimuth)
+    if args.bvh:
+        return sources.simulate_mocap(args.bvh, frames, args.start, units=args.units,
+                                      treadmill=args.treadmill, **view, **options)
+    if args.rig:
+        return sources.simulate_rig(args.rig, frames, **view, **options)
+    return sources.simulate_mesh_sequence(args.mesh_sequence, frames, args.start or 0, **view, **options)
+
+
+def _cmd_simulate(args) -> int:
     from .sim.output import write_simulated_bag
 
     out = Path(args.out)
     if out.exists():
         raise UserError(f'{out} already exists; choose a new --out or remove it')
-    if args.frames < 2:
-        raise UserError(f'--frames must be at least 2, got {args.frames}')
-    noise = NoiseModel.kinect() if args.noise == 'kinect' else NoiseModel.none()
     started = time.perf_counter()
-    sequence = generate_sequence(args.subject, args.frames, resolution=args.resolution,
-                                 noise=noise, clutter=args.clutter, seed=args.seed,
-                                 surface_samples=args.surface_samples)
+    sequence = _simulate_sequence(args)
     generated = time.perf_counter() - started
     gt_path = write_simulated_bag(sequence, out, topic=args.topic)
     counts = sequence.points_per_frame()
-    print(f'{args.subject}: {args.frames} frames at {args.resolution} '
-          f'({generated:.1f} s, {1000 * generated / args.frames:.0f} ms/frame); '
-          f'valid points per frame {counts.min()}-{counts.max()} (median {int(np.median(counts))})')
+    subject = sequence.ground_truth['subject_mask'].sum(axis=(1, 2))
+    n_frames = len(sequence.clouds)
+    start = sequence.ground_truth.get('source_start_frame')
+    window = f' (source frames {int(start)}-{int(start) + n_frames - 1})' if start is not None else ''
+    print(f'{sequence.name}: {n_frames} frames{window} at {args.resolution}, scene {args.scene} '
+          f'({generated:.1f} s, {1000 * generated / n_frames:.0f} ms/frame); '
+          f'valid points per frame {counts.min()}-{counts.max()} (median {int(np.median(counts))}), '
+          f'subject {subject.min()}-{subject.max()}; '
+          f'{len(sequence.ground_truth["joint_names"])} ground-truth joints')
     print(f'bag: {out}  topic: {args.topic}  ground truth: {gt_path}')
     return 0
 
@@ -242,13 +273,38 @@ def build_parser() -> argparse.ArgumentParser:
         description='Template-free articulated skeleton extraction from depth point cloud sequences.')
     commands = parser.add_subparsers(dest='command', required=True, metavar='COMMAND')
 
-    simulate = commands.add_parser('simulate', help='render a synthetic sequence with ground truth')
-    simulate.add_argument('--subject', required=True, choices=sorted(SUBJECTS))
-    simulate.add_argument('--frames', type=int, required=True, help='number of frames (30 Hz)')
+    simulate = commands.add_parser(
+        'simulate', help='render a sequence through a virtual depth camera, with ground truth',
+        description='Render a subject through a virtual Kinect-like depth camera into a bag, with '
+                    'its ground truth (gt.npz) beside it. The subject is one of: a built-in '
+                    'synthetic subject, a motion-capture clip (BVH) on a body of capsules, a '
+                    'skinned rig blended between its key poses, or a captured mesh sequence.')
+    source = simulate.add_argument_group('subject (exactly one)')
+    source.add_argument('--subject', choices=sorted(SUBJECTS), help='built-in synthetic subject')
+    source.add_argument('--bvh', help='motion-capture clip (BVH) to put a body on')
+    source.add_argument('--rig', help='rig directory (mesh .obj, skeleton .tgf, weights .DMAT, '
+                                      'key poses -K.Tmat), blended between its key poses')
+    source.add_argument('--mesh-sequence', help='captured mesh sequence (.npz: vertices F x V x 3, '
+                                                'faces, fps)')
+    simulate.add_argument('--frames', type=int, default=None, help='number of frames at 30 Hz (default 90)')
+    simulate.add_argument('--start', type=int, default=None,
+                          help='first source frame (default: the window with the most limb motion)')
     simulate.add_argument('--out', required=True, help='bag directory to create (gt.npz goes inside)')
+    simulate.add_argument('--scene', default='empty', choices=['empty', 'floor', 'room'],
+                          help='what else the camera sees: nothing, a floor, or a room (floor, back '
+                               'and side walls, a table, a standing lamp)')
+    simulate.add_argument('--walk-in', type=int, default=0, metavar='N',
+                          help='start outside the view and come in sideways over the first N frames')
+    simulate.add_argument('--distance', type=float, default=None,
+                          help='camera distance in m (default 3; backs off until all motion is in view)')
+    simulate.add_argument('--azimuth', type=float, default=0.0,
+                          help='camera direction in degrees about the vertical, 0 = facing the subject')
+    simulate.add_argument('--treadmill', action='store_true',
+                          help='BVH: take out the horizontal travel (a run does not fit the view)')
+    simulate.add_argument('--units', default='auto', choices=['auto', 'm', 'cm', 'mm', 'in'],
+                          help='BVH length unit (auto: from the skeleton size)')
     simulate.add_argument('--resolution', default='320x240', choices=sorted(RESOLUTIONS))
     simulate.add_argument('--noise', default='kinect', choices=['kinect', 'none'])
-    simulate.add_argument('--clutter', action='store_true', help='add a floor and a back wall')
     simulate.add_argument('--seed', type=int, default=0)
     simulate.add_argument('--topic', default='/camera/depth/points')
     simulate.add_argument('--surface-samples', type=int, default=4000,

@@ -9,7 +9,7 @@ import pytest
 from skel_extract_ros.sim import NoiseModel, generate_sequence
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-SAMPLE_BAG = REPO_ROOT / 'bags' / 'sample_human'
+SAMPLE_BAG = REPO_ROOT / 'bags' / 'sample_wave'
 
 
 @pytest.fixture(scope='session')

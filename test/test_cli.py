@@ -14,7 +14,7 @@ from conftest import run_cli as run
 def test_simulate_info_evaluate(tmp_path):
     bag = tmp_path / 'fish_bag'
     done = run('simulate', '--subject', 'fish', '--frames', '12', '--out', bag, '--seed', '4',
-               '--resolution', '640x480', '--clutter')
+               '--resolution', '640x480', '--scene', 'room')
     assert done.returncode == 0, done.stderr
     assert 'valid points per frame' in done.stdout
     assert 'simulate fish' in done.stderr  # progress
@@ -40,6 +40,10 @@ def test_simulate_info_evaluate(tmp_path):
     (['info', '/nonexistent/bag'], 'does not exist'),
     (['evaluate', '--gt', '/nonexistent/gt.npz', '--pred', 'x.json'], 'does not exist'),
     (['simulate', '--subject', 'hand', '--frames', '1', '--out', '/tmp/unused_skel_bag'], 'at least 2'),
+    (['simulate', '--frames', '5', '--out', '/tmp/unused_skel_bag'], 'exactly one of'),
+    (['simulate', '--subject', 'arm', '--bvh', 'x.bvh', '--out', '/tmp/unused_skel_bag'], 'exactly one of'),
+    (['simulate', '--subject', 'arm', '--azimuth', '30', '--out', '/tmp/unused_skel_bag'], 'own camera'),
+    (['simulate', '--bvh', '/nonexistent/clip.bvh', '--out', '/tmp/unused_skel_bag'], 'does not exist'),
 ])
 def test_bad_input_is_one_clear_line(args, message):
     done = run(*args)

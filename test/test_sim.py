@@ -100,10 +100,20 @@ def test_dropouts_outliers_and_flying_pixels():
     assert (flying[changed] > depth[changed]).all()
 
 
-def test_clutter_adds_floor_and_wall():
+def test_scenes_add_floor_and_room_but_never_cover_the_subject():
     plain = generate_sequence('human', 1, seed=2, progress=False, noise=NoiseModel.none())
-    cluttered = generate_sequence('human', 1, seed=2, progress=False, noise=NoiseModel.none(), clutter=True)
-    assert cluttered.points_per_frame()[0] > 5 * plain.points_per_frame()[0]
+    floor = generate_sequence('human', 1, seed=2, progress=False, noise=NoiseModel.none(), scene='floor')
+    room = generate_sequence('human', 1, seed=2, progress=False, noise=NoiseModel.none(), scene='room')
+    assert floor.points_per_frame()[0] > 3 * plain.points_per_frame()[0]
+    assert room.points_per_frame()[0] > floor.points_per_frame()[0]
+    mask = plain.ground_truth['subject_mask'][0]
+    # the subject mask is where the empty scene sees anything; rooms leave it untouched
+    np.testing.assert_array_equal(mask, np.isfinite(plain.clouds[0][..., 2]))
+    for seq in (floor, room):
+        np.testing.assert_array_equal(seq.ground_truth['subject_mask'][0], mask)
+        np.testing.assert_array_equal(seq.clouds[0][mask], plain.clouds[0][mask])
+    with pytest.raises(ValueError, match='unknown scene'):
+        generate_sequence('arm', 1, scene='garden', progress=False)
 
 
 def test_640x480_intrinsics_and_back_projection():

@@ -136,14 +136,24 @@ class DepthCamera:
     def render_depth(self, meshes) -> np.ndarray:
         """(H, W) depth in metres from a list of (vertices (V, 3), triangles (T, 3)) in the
         optical frame; NaN where no surface is hit."""
+        return self.render(meshes, [])[0]
+
+    def render(self, subject_meshes, scene_meshes) -> tuple:
+        """(depth (H, W) m, NaN where nothing is hit; subject (H, W) bool: the first surface
+        hit is one of `subject_meshes`) for meshes given as (vertices, triangles) in the
+        optical frame."""
         scene = o3d.t.geometry.RaycastingScene()
-        for vertices, triangles in meshes:
+        for vertices, triangles in list(subject_meshes) + list(scene_meshes):
             scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(vertices, dtype=np.float32)),
                                 o3d.core.Tensor(np.ascontiguousarray(triangles, dtype=np.uint32)))
-        t_hit = scene.cast_rays(self._rays)['t_hit'].numpy()
-        depth = t_hit.reshape(self.intrinsics.height, self.intrinsics.width).astype(np.float64)
+        hits = scene.cast_rays(self._rays)
+        shape = (self.intrinsics.height, self.intrinsics.width)
+        depth = hits['t_hit'].numpy().reshape(shape).astype(np.float64)
         depth[~np.isfinite(depth)] = np.nan
-        return depth
+        # Geometry ids are given in the order added, so the subject's come first.
+        ids = hits['geometry_ids'].numpy().reshape(shape).astype(np.int64)
+        subject = np.isfinite(depth) & (ids < len(subject_meshes))
+        return depth, subject
 
     def back_project(self, depth: np.ndarray) -> np.ndarray:
         """(H, W) depth -> (H, W, 3) float32 organized cloud, NaN where depth is NaN."""

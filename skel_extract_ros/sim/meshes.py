@@ -43,6 +43,18 @@ def shape_mesh(shape) -> tuple:
     raise TypeError(f'unsupported shape {shape!r}')
 
 
+def capsule_mesh(start, end, radius: float) -> tuple:
+    """(vertices (V, 3), triangles (T, 3)) of a capsule from `start` to `end`, metres."""
+    return shape_mesh(Capsule(tuple(np.asarray(start, float)), tuple(np.asarray(end, float)), float(radius)))
+
+
+def ellipsoid_mesh(center, axes: np.ndarray, radii) -> tuple:
+    """(vertices, triangles) of an ellipsoid with semi-axes `radii` (3,) along the rows of
+    `axes` (3, 3, orthonormal), centred at `center` (3,)."""
+    vertices, triangles = _unit_sphere()
+    return (vertices * np.asarray(radii, float)) @ np.asarray(axes, float) + np.asarray(center, float), triangles
+
+
 def sample_surface(vertices: np.ndarray, triangles: np.ndarray, count: int,
                    rng: np.random.Generator) -> np.ndarray:
     """(count, 3) points drawn uniformly by area over a triangle mesh."""

@@ -1,0 +1,180 @@
+"""Benchmark on real motion: every real clip through the simulated Kinect, `skel-extract run`
+end to end, scored against the ground truth.
+
+    python bench/bench_real_motion.py [--frames 90] [--scenes empty,room] [--only wave,cow]
+                                      [--work DIR] [--score-only] [--json FILE]
+
+Subjects: every BVH clip in ../shared/data/mocap/ (real actors, on a body of capsules), the
+cow rig (../shared/data/rigs/cow, blended between its key poses) and the samba mesh sequence
+(../shared/data/samba_mesh_sequence.npz, registration only: it has no joints). Each is
+rendered at 320x240 with Kinect noise, 90 frames at 30 Hz (the most active window, or the
+whole clip when shorter), in an empty scene and in a room (floor, walls, a table, a lamp).
+Walks keep their travel (towards the camera, which stays within 4.5 m); runs are put on a
+treadmill (`simulate --treadmill`), since 5 m in two seconds leaves any depth camera's view.
+`skel-extract run` is started as a user starts it (a subprocess, default parameters) and
+its files are scored with skel_extract_ros.evaluation. Absent data is skipped.
+
+`--work DIR` keeps the bags and run outputs (default: a temporary directory); with
+`--score-only` nothing is simulated or run again, the outputs in DIR are scored.
+Set SKEL_SHARED_DATA to read the data from elsewhere.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from skel_extract_ros.evaluation import (EvaluationError, GroundTruth, PredictedSkeleton,  # noqa: E402
+                                         evaluate_joints, evaluate_registration, load_registered)
+
+DATA = Path(os.environ.get('SKEL_SHARED_DATA', REPO.parent / 'shared' / 'data'))
+CLI = shutil.which('skel-extract', path=str(Path(sys.executable).parent)) or 'skel-extract'
+TIME_LINE = re.compile(r'time: preprocess ([\d.]+) s \| rest pose ([\d.]+) s \| registration ([\d.]+) s '
+                       r'\(median (\d+) ms/frame\) \| structure ([\d.]+) s \| joints ([\d.]+) s \| total ([\d.]+) s')
+
+
+def subjects(only: list) -> list:
+    """(name, simulate arguments) for every subject whose data is present."""
+    found = []
+    for clip in sorted((DATA / 'mocap').glob('*.bvh')):
+        name = clip.stem.replace('dataset-2_', '').replace('_001', '')
+        # A run covers 5 m in two seconds, more than a depth camera sees: on a treadmill.
+        found.append((name, ['--bvh', str(clip)] + (['--treadmill'] if name.startswith('run') else [])))
+    if (DATA / 'rigs' / 'cow' / 'cow.obj').is_file():
+        found.append(('cow', ['--rig', str(DATA / 'rigs' / 'cow')]))
+    if (DATA / 'samba_mesh_sequence.npz').is_file():
+        found.append(('samba', ['--mesh-sequence', str(DATA / 'samba_mesh_sequence.npz')]))
+    if only:
+        found = [(n, a) for n, a in found if any(o in n for o in only)]
+    return found
+
+
+def simulate_and_run(name: str, source_args: list, scene: str, frames: int, work: Path) -> dict:
+    bag, out = work / f'{name}_{scene}', work / f'{name}_{scene}_out'
+    shutil.rmtree(bag, ignore_errors=True)
+    shutil.rmtree(out, ignore_errors=True)
+    done = subprocess.run([CLI, 'simulate', *source_args, '--frames', str(frames), '--scene', scene,
+                           '--out', str(bag)], capture_output=True, text=True)
+    if done.returncode != 0:
+        raise RuntimeError(f'simulate {name}: {done.stderr.strip().splitlines()[-1]}')
+    started = time.perf_counter()
+    done = subprocess.run([CLI, 'run', str(bag), '--out', str(out)], capture_output=True, text=True)
+    record = {'wall_s': time.perf_counter() - started, 'returncode': done.returncode,
+              'stdout': done.stdout, 'error': done.stderr.strip().splitlines()[-1] if done.returncode else ''}
+    (work / f'{name}_{scene}_run.json').write_text(json.dumps(record))
+    return record
+
+
+def _num(value) -> float:
+    return float(value) if value is not None else float('nan')
+
+
+def score(name: str, scene: str, work: Path) -> dict:
+    bag, out = work / f'{name}_{scene}', work / f'{name}_{scene}_out'
+    record = json.loads((work / f'{name}_{scene}_run.json').read_text())
+    gt = GroundTruth.load(bag / 'gt.npz')
+    row = {'subject': name, 'scene': scene, 'error': record['error'], 'wall_s': record['wall_s'],
+           'true_joints': int(gt.joints.shape[1])}
+    timing = TIME_LINE.search(record['stdout'])
+    if timing:
+        keys = ('preprocess_s', 'rest_pose_s', 'registration_s', 'registration_ms_per_frame',
+                'structure_s', 'joints_s', 'total_s')
+        row.update({k: float(v) for k, v in zip(keys, timing.groups())})
+    if (out / 'registered.npz').is_file():
+        points, stamps = load_registered(out / 'registered.npz')
+        reg = evaluate_registration(points, stamps, gt)
+        per_frame = np.asarray(reg['per_frame_error_m'])
+        row.update({'reg_mean_m': reg['mean_error_m'], 'reg_p95_m': reg['p95_error_m'],
+                    'reg_worst_frame_m': float(np.nanmax(per_frame)),
+                    'reg_worst_frame_p95_m': _num(reg.get('worst_frame_p95_m')),
+                    'per_part': reg.get('per_part', {})})
+    if (out / 'skeleton.json').is_file() and gt.joints.shape[1]:
+        report = evaluate_joints(PredictedSkeleton.load(out / 'skeleton.json'), gt).as_dict()
+        row.update({k: report.get(k) for k in (
+            'n_predicted', 'n_matched', 'recall', 'articulated_recall', 'n_articulated', 'precision',
+            'mean_error_m', 'normalized_error_m', 'motion_skill', 'nonfinite_fraction')})
+        row['missed_articulated'] = report.get('missed_articulated', [])
+    elif gt.joints.shape[1]:
+        # No skeleton is no joint found: recall 0 over the articulated joints.
+        row.update({'n_predicted': 0, 'recall': 0.0, 'articulated_recall': 0.0})
+    return row
+
+
+def _fmt(value, digits=2, scale=1.0) -> str:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return '-'
+    if isinstance(value, (int, np.integer)):
+        return str(int(value))
+    return f'{value * scale:.{digits}f}'
+
+
+def table(rows: list) -> str:
+    lines = ['| subject | scene | articulated / true joints | found | recall | artic. recall | precision | '
+             'joint mean / normalized (cm) | reg mean / p95 / worst frame (cm) | worst part: mean / worst frame (cm) | '
+             'reg ms/frame | step 2 + 3 (s) | total (s) |',
+             '|' + '---|' * 13]
+    for r in rows:
+        parts = r.get('per_part') or {}
+        worst = max(parts.items(), key=lambda kv: kv[1].get('mean_error_m', 0.0), default=None)
+        worst_text = (f'{worst[0]}: {_fmt(worst[1].get("mean_error_m"), 1, 100)} / '
+                      f'{_fmt(worst[1].get("worst_frame_error_m"), 1, 100)}') if worst else '-'
+        found = _fmt(r.get('n_predicted')) if not r.get('error') else f'fails: {r["error"][:60]}'
+        steps = (r.get('structure_s') or 0.0) + (r.get('joints_s') or 0.0) if 'structure_s' in r else None
+        lines.append(
+            f'| {r["subject"]} | {r["scene"]} | {_fmt(r.get("n_articulated"))} / {r["true_joints"]} | {found} | '
+            f'{_fmt(r.get("recall"))} | {_fmt(r.get("articulated_recall"))} | {_fmt(r.get("precision"))} | '
+            f'{_fmt(r.get("mean_error_m"), 1, 100)} / {_fmt(r.get("normalized_error_m"), 1, 100)} | '
+            f'{_fmt(r.get("reg_mean_m"), 1, 100)} / {_fmt(r.get("reg_p95_m"), 1, 100)} / '
+            f'{_fmt(r.get("reg_worst_frame_m"), 1, 100)} | {worst_text} | '
+            f'{_fmt(r.get("registration_ms_per_frame"), 0)} | {_fmt(steps, 1)} | {_fmt(r.get("total_s"), 1)} |')
+    return '\n'.join(lines)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument('--frames', type=int, default=90)
+    parser.add_argument('--scenes', default='empty,room')
+    parser.add_argument('--only', default='', help='comma-separated name fragments (e.g. wave,cow)')
+    parser.add_argument('--work', default=None, help='keep bags and outputs here')
+    parser.add_argument('--score-only', action='store_true', help='score the outputs already in --work')
+    parser.add_argument('--json', default=None, help='write the rows as JSON')
+    args = parser.parse_args()
+    chosen = subjects([o for o in args.only.split(',') if o])
+    if not chosen:
+        print(f'no real-motion data under {DATA}; nothing to benchmark')
+        return 0
+    work = Path(args.work) if args.work else Path(tempfile.mkdtemp(prefix='bench_real_'))
+    work.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for name, source_args in chosen:
+        for scene in args.scenes.split(','):
+            if not args.score_only:
+                started = time.perf_counter()
+                record = simulate_and_run(name, source_args, scene, args.frames, work)
+                print(f'{name} {scene}: run exit {record["returncode"]} in {time.perf_counter() - started:.0f} s '
+                      f'{record["error"]}', file=sys.stderr, flush=True)
+            try:
+                rows.append(score(name, scene, work))
+            except (EvaluationError, FileNotFoundError) as error:
+                print(f'{name} {scene}: cannot score: {error}', file=sys.stderr)
+    print(table(rows))
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=1, default=float))
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
