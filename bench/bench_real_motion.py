@@ -42,7 +42,7 @@ from skel_extract_ros.evaluation import (EvaluationError, GroundTruth, Predicted
 
 DATA = Path(os.environ.get('SKEL_SHARED_DATA', REPO.parent / 'shared' / 'data'))
 CLI = shutil.which('skel-extract', path=str(Path(sys.executable).parent)) or 'skel-extract'
-TIME_LINE = re.compile(r'time: preprocess ([\d.]+) s \| rest pose ([\d.]+) s \| registration ([\d.]+) s '
+TIME_LINE = re.compile(r'time: segmentation ([\d.]+) s \| preprocess ([\d.]+) s \| rest pose ([\d.]+) s \| registration ([\d.]+) s '
                        r'\(median (\d+) ms/frame\) \| structure ([\d.]+) s \| joints ([\d.]+) s \| total ([\d.]+) s')
 
 
@@ -90,7 +90,7 @@ def score(name: str, scene: str, work: Path) -> dict:
            'true_joints': int(gt.joints.shape[1])}
     timing = TIME_LINE.search(record['stdout'])
     if timing:
-        keys = ('preprocess_s', 'rest_pose_s', 'registration_s', 'registration_ms_per_frame',
+        keys = ('segmentation_s', 'preprocess_s', 'rest_pose_s', 'registration_s', 'registration_ms_per_frame',
                 'structure_s', 'joints_s', 'total_s')
         row.update({k: float(v) for k, v in zip(keys, timing.groups())})
     if (out / 'registered.npz').is_file():

@@ -1,7 +1,9 @@
 """Reading and writing ROS 2 bags of point clouds with rosbags (no ROS install needed).
 
 Accepted inputs: a rosbag2 directory (mcap or sqlite3 storage, with metadata.yaml) or a
-bare .mcap file. Clouds come out as numpy arrays with their header stamp and frame_id.
+bare .mcap file, holding sensor_msgs/PointCloud2 clouds or sensor_msgs/Image depth images
+with their CameraInfo (back-projected to the same organized clouds). Clouds come out as
+numpy arrays with their header stamp and frame_id.
 """
 from __future__ import annotations
 
@@ -13,10 +15,14 @@ import numpy as np
 from rosbags.rosbag2 import CompressionFormat, CompressionMode, Reader, StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
+from .depth_image import DepthDecodeError, depth_to_cloud, encode_depth
 from .pointcloud import CloudDecodeError, decode_xyz, encode_xyz, xyz_cloud_fields
 
 POINTCLOUD2 = 'sensor_msgs/msg/PointCloud2'
+IMAGE = 'sensor_msgs/msg/Image'
+CAMERA_INFO = 'sensor_msgs/msg/CameraInfo'
 DEFAULT_TOPIC = '/camera/depth/points'
+DEFAULT_DEPTH_TOPIC = '/camera/depth/image_raw'
 
 _TYPESTORE = None
 
@@ -94,6 +100,48 @@ def write_cloud_bag(path, clouds, stamps_ns, frame_id: str, topic: str = DEFAULT
     return path
 
 
+def camera_info_topic(image_topic: str) -> str:
+    """The CameraInfo topic drivers publish beside a depth image topic
+    (/camera/depth/image_raw -> /camera/depth/camera_info)."""
+    return image_topic.rsplit('/', 1)[0] + '/camera_info'
+
+
+def write_depth_bag(path, depths, stamps_ns, frame_id: str, intrinsics: tuple,
+                    topic: str = DEFAULT_DEPTH_TOPIC, encoding: str = '16UC1') -> Path:
+    """Write (H, W) depth images in metres (NaN = no return) as sensor_msgs/Image with a
+    CameraInfo per frame (intrinsics = (fx, fy, cx, cy)), as a depth driver records them."""
+    path = Path(path)
+    if path.exists():
+        raise BagError(f'{path} already exists; choose a new output path or remove it')
+    store = typestore()
+    types = store.types
+    fx, fy, cx, cy = intrinsics
+    writer = Writer(path, version=9, storage_plugin=StoragePlugin.MCAP)
+    writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+    with writer:
+        image_connection = writer.add_connection(topic, IMAGE, typestore=store)
+        info_connection = writer.add_connection(camera_info_topic(topic), CAMERA_INFO, typestore=store)
+        for depth, stamp_ns in zip(depths, stamps_ns):
+            stamp_ns = int(stamp_ns)
+            header = types['std_msgs/msg/Header'](
+                stamp=types['builtin_interfaces/msg/Time'](sec=stamp_ns // 1_000_000_000,
+                                                           nanosec=stamp_ns % 1_000_000_000),
+                frame_id=frame_id)
+            height, width, step, data = encode_depth(depth, encoding)
+            image = types[IMAGE](header=header, height=height, width=width, encoding=encoding,
+                                 is_bigendian=0, step=step, data=np.frombuffer(data, dtype=np.uint8))
+            roi = types['sensor_msgs/msg/RegionOfInterest'](x_offset=0, y_offset=0, height=0, width=0,
+                                                            do_rectify=False)
+            info = types[CAMERA_INFO](
+                header=header, height=height, width=width, distortion_model='plumb_bob',
+                d=np.zeros(5), k=np.array([fx, 0, cx, 0, fy, cy, 0, 0, 1], float),
+                r=np.eye(3).reshape(-1), p=np.array([fx, 0, cx, 0, 0, fy, cy, 0, 0, 0, 1, 0], float),
+                binning_x=0, binning_y=0, roi=roi)
+            writer.write(info_connection, stamp_ns, store.serialize_cdr(info, CAMERA_INFO))
+            writer.write(image_connection, stamp_ns, store.serialize_cdr(image, IMAGE))
+    return path
+
+
 def _check_input(path: Path) -> None:
     if not path.exists():
         raise BagError(f'input {path} does not exist')
@@ -103,9 +151,8 @@ def _check_input(path: Path) -> None:
         raise BagError(f'{path} is not a rosbag2 directory or an .mcap file')
 
 
-def cloud_topics(path) -> dict:
-    """{topic: message count} of the PointCloud2 topics in a bag."""
-    path = Path(path)
+def _topics(path: Path) -> dict:
+    """{topic: (message type, count)} of a bag."""
     _check_input(path)
     if path.is_file():
         from mcap.reader import make_reader
@@ -115,30 +162,50 @@ def cloud_topics(path) -> dict:
             raise BagError(f'{path} has no summary section; is it a complete mcap file?')
         schemas = {sid: s.name for sid, s in summary.schemas.items()}
         counts = summary.statistics.channel_message_counts if summary.statistics else {}
-        return {c.topic: int(counts.get(cid, 0)) for cid, c in summary.channels.items()
-                if schemas.get(c.schema_id) == POINTCLOUD2}
+        return {c.topic: (schemas.get(c.schema_id, ''), int(counts.get(cid, 0)))
+                for cid, c in summary.channels.items()}
     try:
         with Reader(path) as reader:
-            return {c.topic: c.msgcount for c in reader.connections if c.msgtype == POINTCLOUD2}
+            return {c.topic: (c.msgtype, c.msgcount) for c in reader.connections}
     except Exception as error:  # rosbags raises several types for unreadable bags
         raise BagError(f'cannot read bag {path}: {error}') from error
 
 
+def cloud_topics(path) -> dict:
+    """{topic: message count} of the topics a cloud can be read from: PointCloud2 topics,
+    and Image topics that have a CameraInfo topic beside them (depth images)."""
+    topics = _topics(Path(path))
+    clouds = {t: n for t, (kind, n) in topics.items() if kind == POINTCLOUD2}
+    depth = {t: n for t, (kind, n) in topics.items()
+             if kind == IMAGE and topics.get(camera_info_topic(t), ('',))[0] == CAMERA_INFO}
+    return {**clouds, **depth}
+
+
+def is_depth_topic(path, topic: str) -> bool:
+    return _topics(Path(path)).get(topic, ('',))[0] == IMAGE
+
+
 def select_cloud_topic(path, topic: str | None = None) -> str:
-    """The PointCloud2 topic to read: `topic` if given and present, else the only one."""
+    """The topic to read clouds from: `topic` if given and present, else the only
+    PointCloud2 topic, else the only depth image topic (with its camera_info)."""
     topics = cloud_topics(path)
     if topic is not None:
         if topic not in topics:
             listed = ', '.join(topics) or 'none'
-            raise BagError(f'bag {path} has no PointCloud2 topic {topic} (PointCloud2 topics: {listed})')
+            raise BagError(f'bag {path} has no PointCloud2 topic {topic} and no depth image topic of that '
+                           f'name (usable topics: {listed})')
         return topic
     if not topics:
-        raise BagError(f'bag {path} contains no sensor_msgs/msg/PointCloud2 messages')
-    if len(topics) > 1:
-        if DEFAULT_TOPIC in topics:
-            return DEFAULT_TOPIC
-        raise BagError(f'bag {path} has several PointCloud2 topics ({", ".join(topics)}); pass --topic')
-    return next(iter(topics))
+        raise BagError(f'bag {path} contains no sensor_msgs/msg/PointCloud2 messages and no depth '
+                       'images (sensor_msgs/msg/Image with a camera_info topic beside them)')
+    clouds = [t for t in topics if not is_depth_topic(path, t)]
+    candidates = clouds or list(topics)
+    if len(candidates) > 1:
+        for preferred in (DEFAULT_TOPIC, DEFAULT_DEPTH_TOPIC):
+            if preferred in candidates:
+                return preferred
+        raise BagError(f'bag {path} has several cloud topics ({", ".join(candidates)}); pass --topic')
+    return candidates[0]
 
 
 def _raw_messages(path: Path, topic: str) -> Iterator[tuple]:
@@ -156,13 +223,17 @@ def _raw_messages(path: Path, topic: str) -> Iterator[tuple]:
 
 
 def read_cloud_frames(path, topic: str | None = None) -> Iterator[CloudFrame]:
-    """Yield every PointCloud2 on `topic` (see `select_cloud_topic`) as a CloudFrame.
+    """Yield every cloud on `topic` (see `select_cloud_topic`) as a CloudFrame: a
+    PointCloud2 as it is, a depth image back-projected with the latest CameraInfo.
 
     A message that cannot be decoded raises BagError naming its index and the reason.
     """
     path = Path(path)
     topic = select_cloud_topic(path, topic)
     store = typestore()
+    if is_depth_topic(path, topic):
+        yield from _read_depth_frames(path, topic, store)
+        return
     for index, (_timestamp, raw) in enumerate(_raw_messages(path, topic)):
         msg = store.deserialize_cdr(raw, POINTCLOUD2)
         try:
@@ -171,3 +242,22 @@ def read_cloud_frames(path, topic: str | None = None) -> Iterator[CloudFrame]:
             raise BagError(f'message {index} on {topic}: {error}') from error
         yield CloudFrame(index, stamp_to_ns(msg.header.stamp), msg.header.frame_id, points,
                          int(msg.height), int(msg.width))
+
+
+def _read_depth_frames(path: Path, topic: str, store) -> Iterator[CloudFrame]:
+    info_topic = camera_info_topic(topic)
+    infos = [store.deserialize_cdr(raw, CAMERA_INFO) for _t, raw in _raw_messages(path, info_topic)]
+    if not infos:
+        raise BagError(f'bag {path}: no CameraInfo on {info_topic} for the depth images on {topic}')
+    info_stamps = np.array([stamp_to_ns(info.header.stamp) for info in infos])
+    for index, (_timestamp, raw) in enumerate(_raw_messages(path, topic)):
+        msg = store.deserialize_cdr(raw, IMAGE)
+        stamp = stamp_to_ns(msg.header.stamp)
+        # the latest camera info at or before the image (the first one for early images)
+        info = infos[max(int(np.searchsorted(info_stamps, stamp, side='right')) - 1, 0)]
+        try:
+            cloud = depth_to_cloud(msg, info)
+        except DepthDecodeError as error:
+            raise BagError(f'message {index} on {topic}: {error}') from error
+        yield CloudFrame(index, stamp, msg.header.frame_id, cloud.reshape(-1, 3),
+                         cloud.shape[0], cloud.shape[1])

@@ -58,7 +58,7 @@ def _cmd_simulate(args) -> int:
     started = time.perf_counter()
     sequence = _simulate_sequence(args)
     generated = time.perf_counter() - started
-    gt_path = write_simulated_bag(sequence, out, topic=args.topic)
+    gt_path = write_simulated_bag(sequence, out, topic=args.topic, depth_image=args.depth_image)
     counts = sequence.points_per_frame()
     subject = sequence.ground_truth['subject_mask'].sum(axis=(1, 2))
     n_frames = len(sequence.clouds)
@@ -69,7 +69,8 @@ def _cmd_simulate(args) -> int:
           f'valid points per frame {counts.min()}-{counts.max()} (median {int(np.median(counts))}), '
           f'subject {subject.min()}-{subject.max()}; '
           f'{len(sequence.ground_truth["joint_names"])} ground-truth joints')
-    print(f'bag: {out}  topic: {args.topic}  ground truth: {gt_path}')
+    from .bag import select_cloud_topic
+    print(f'bag: {out}  topic: {select_cloud_topic(out)}  ground truth: {gt_path}')
     return 0
 
 
@@ -146,13 +147,16 @@ def _cmd_run(args) -> int:
         raise UserError(f'{args.input}: {n_frames} frame(s) selected on {topic}; at least 2 are needed')
     out.mkdir(parents=True, exist_ok=True)
 
-    stamps, frame_ids = [], []
+    stamps, frame_ids, scenes = [], [], []
 
     def clouds():
         for frame in itertools.islice(read_cloud_frames(args.input, topic), start, stop):
             stamps.append(frame.stamp)
             frame_ids.append(frame.frame_id)
-            yield frame.points
+            # a thinned copy of the whole view, for skeleton.png (the subject over the room)
+            finite = frame.points[np.isfinite(frame.points).all(axis=1)]
+            scenes.append(finite[::max(1, len(finite) // 8000)])
+            yield frame.points.reshape(frame.height, frame.width, 3) if frame.height > 1 else frame.points
 
     pipeline = SkeletonPipeline(**settings)
     progress = progress_bar(total=n_frames, desc='register', unit='frame')
@@ -172,16 +176,31 @@ def _cmd_run(args) -> int:
         progress.close()
     registration = pipeline.registration
     if registration.rest_pose_ is None:
-        raise UserError(f'{args.input}: no frame had enough points for a rest pose '
-                        '(is the subject in view? check the preprocessing parameters)')
+        found = sum(s.status == 'subject' for s in registration.segmentation_)
+        raise UserError(f'{args.input}: no rest pose: the subject was found in {found} of '
+                        f'{len(registration.segmentation_)} frames and never wholly in view with enough '
+                        'points (nobody moved? check the segmentation and preprocessing parameters)')
     frame_id = frame_ids[0] if frame_ids else ''
     stamps = np.array(stamps)
+    segments = registration.segmentation_
+    subject_points = np.array([s.n_subject for s in segments])
+    background = np.array([s.background_fraction for s in segments])
     np.savez_compressed(out / 'registered.npz', points=registered, stamps=stamps,
                         status=registration.statuses_, sigma2=registration.sigma2_,
                         rest_points=registration.rest_pose_.points.astype(np.float32),
-                        frame_id=np.array(frame_id))
+                        frame_id=np.array(frame_id), subject_points=subject_points,
+                        background_fraction=background,
+                        segmentation=np.array([s.status for s in segments]))
     print(f'registered {len(registered)} frames of {registered.shape[1]} points -> {out / "registered.npz"}'
           f'  ({", ".join(f"{n} {status}" for status, n in sorted(counts.items()))})')
+    with_subject = subject_points > 0
+    several = max((s.n_moving_regions for s in segments), default=0)
+    print(f'subject found in {with_subject.sum()} of {len(segments)} frames'
+          + (f' (first at frame {int(np.argmax(with_subject))})' if with_subject.any() else '')
+          + (f', median {int(np.median(subject_points[with_subject]))} points, '
+             f'{100 * np.median(background[with_subject]):.1f} % of the view removed as background'
+             if with_subject.any() else '')
+          + (f'; up to {several} moving regions seen, the one moving most followed' if several > 1 else ''))
     print('extracting the skeleton (steps 2 and 3) ...', file=sys.stderr)
     try:
         result = pipeline.extract(registered)
@@ -191,13 +210,14 @@ def _cmd_run(args) -> int:
     (out / 'skeleton.json').write_text(json.dumps(document))
     draw_skeleton_png(out / 'skeleton.png', result.observed, registered[result.frames],
                       result.model.labels, result.joint_positions, result.model.parents,
-                      stamps[result.frames])
+                      stamps[result.frames], scene=[scenes[i] for i in result.frames])
     total = time.perf_counter() - started
     per_frame = np.array(registration.times_.per_frame_registration) * 1000.0
     seconds = result.seconds
     print(f'skeleton: {result.model.n_joints} joints, {result.structure.n_bones} bones '
           f'-> {out / "skeleton.json"}, {out / "skeleton.png"}')
-    print(f'time: preprocess {seconds["preprocess"]:.1f} s | rest pose {seconds["rest_pose"]:.1f} s | '
+    print(f'time: segmentation {seconds["segmentation"]:.1f} s | '
+          f'preprocess {seconds["preprocess"]:.1f} s | rest pose {seconds["rest_pose"]:.1f} s | '
           f'registration {seconds["registration"]:.1f} s (median {np.median(per_frame):.0f} ms/frame) | '
           f'structure {seconds["structure"]:.1f} s | joints {seconds["joints"]:.1f} s | total {total:.1f} s')
     return 0
@@ -306,7 +326,11 @@ def build_parser() -> argparse.ArgumentParser:
     simulate.add_argument('--resolution', default='320x240', choices=sorted(RESOLUTIONS))
     simulate.add_argument('--noise', default='kinect', choices=['kinect', 'none'])
     simulate.add_argument('--seed', type=int, default=0)
-    simulate.add_argument('--topic', default='/camera/depth/points')
+    simulate.add_argument('--topic', default=None,
+                          help='topic (default /camera/depth/points, or /camera/depth/image_raw with --depth-image)')
+    simulate.add_argument('--depth-image', action='store_true',
+                          help='record 16UC1 depth images (mm) with camera_info, as drivers publish by '
+                               'default, instead of PointCloud2')
     simulate.add_argument('--surface-samples', type=int, default=4000,
                           help='ground-truth surface samples (for registration error)')
     simulate.set_defaults(handler=_cmd_simulate)

@@ -50,6 +50,22 @@ _REGISTRATION = {
     'preprocess.outlier_neighbours': ('statistical outlier removal neighbours; 0 = off', (0, 200)),
     'preprocess.outlier_std_ratio': ('statistical outlier removal threshold, standard deviations', (0.1, 100.0)),
     'preprocess.seed': ('seed of the random thinning', (0, 2**31 - 1)),
+    'segmentation.enabled': ('find the subject (the connected region that moves) and drop the room; '
+                             'false = every valid point is the subject', _ANY),
+    'segmentation.noise_sigmas': ('a depth change or a distance to a plane counts beyond this many measured '
+                                  'noise deviations', (0.5, 100.0)),
+    'segmentation.min_noise_c': ('floor of the measured depth noise coefficient c in sigma = c r^2, 1/m',
+                                 (1e-6, 1.0)),
+    'segmentation.motion_lag': ('frames between the depth images compared for motion', (1, 1000)),
+    'segmentation.motion_memory': ('frames over which motion evidence fades', (1, 100_000)),
+    'segmentation.max_planes': ('planes (floor, walls, table tops) removed at most', (0, 20)),
+    'segmentation.min_plane_extent': ('m; smaller planes are kept (they may be the subject)', (0.01, 100.0)),
+    'segmentation.plane_refresh': ('frames between plane fits', (1, 100_000)),
+    'segmentation.attach_distance': ('m; a region this close to the subject in 3-D is part of it', (0.0, 10.0)),
+    'segmentation.min_subject_points': ('a smaller subject is nobody, points', (1, 10_000_000)),
+    'segmentation.seed': ('RANSAC seed (repeatable plane fits)', (0, 2**31 - 1)),
+    'input': ('what the camera driver publishes: cloud (PointCloud2 on points) or depth_image '
+              '(Image on depth/image, 16UC1 mm or 32FC1 m, with CameraInfo on depth/camera_info)', _ANY),
     'input_reliability': ('QoS of the points subscription: best_effort (sensor data, matches every driver) '
                           'or reliable (lossless bag replay; needs a reliable publisher)', _ANY),
     'queue_size': ('clouds waiting for the registration at most; older ones are skipped (and counted) '

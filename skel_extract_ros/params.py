@@ -15,6 +15,7 @@ from .core.joints import JointParams
 from .core.preprocess import PreprocessParams
 from .core.registration import RegistrationParams
 from .core.rest_pose import RestPoseParams
+from .core.segmentation import SegmentationParams
 from .core.structure import StructureParams
 
 # In a source checkout; the same file is installed to share/skel_extract_ros/params/.
@@ -65,7 +66,7 @@ def _build(cls, values: dict, where: str):
 
 # Parameters of the nodes themselves (windowing, queues, display), not of the method.
 # Their defaults live here (the method's live in the core dataclasses).
-NODE_ONLY = {'registration_node': {'queue_size': 1, 'input_reliability': 'best_effort'},
+NODE_ONLY = {'registration_node': {'queue_size': 1, 'input_reliability': 'best_effort', 'input': 'cloud'},
              'accumulator_node': {'window_size': 60, 'sliding': False, 'stride': 30},
              'joint_estimation_node': {'buffer_size': 300, 'live_sweeps': 2, 'joint_diameter': 0.04}}
 
@@ -75,13 +76,16 @@ def _method_values(values: dict, node: str) -> dict:
 
 
 def registration_params_from_dict(values: dict, where: str = 'registration_node') -> tuple:
-    """(RegistrationParams, RestPoseParams, PreprocessParams) from a node's parameters."""
+    """(RegistrationParams, RestPoseParams, PreprocessParams, SegmentationParams) from a
+    node's parameters."""
     values = _method_values(values, 'registration_node')
     preprocess = values.pop('preprocess', {}) or {}
     rest_pose = values.pop('rest_pose', {}) or {}
+    segmentation = values.pop('segmentation', {}) or {}
     return (_build(RegistrationParams, values, where),
             _build(RestPoseParams, rest_pose, f'{where}.rest_pose'),
-            _build(PreprocessParams, preprocess, f'{where}.preprocess'))
+            _build(PreprocessParams, preprocess, f'{where}.preprocess'),
+            _build(SegmentationParams, segmentation, f'{where}.segmentation'))
 
 
 def structure_params_from_dict(values: dict, where: str = 'accumulator_node') -> StructureParams:
@@ -95,8 +99,10 @@ def joint_params_from_dict(values: dict, where: str = 'joint_estimation_node') -
 
 def pipeline_params(nodes: dict) -> dict:
     """Keyword arguments of SkeletonPipeline from a loaded parameter file."""
-    registration, rest_pose, preprocess = registration_params_from_dict(nodes.get('registration_node', {}))
+    registration, rest_pose, preprocess, segmentation = registration_params_from_dict(
+        nodes.get('registration_node', {}))
     return {'registration': registration, 'rest_pose': rest_pose, 'preprocess': preprocess,
+            'segmentation': segmentation,
             'structure': structure_params_from_dict(nodes.get('accumulator_node', {})),
             'joints': joint_params_from_dict(nodes.get('joint_estimation_node', {}))}
 

@@ -1,6 +1,8 @@
 """`skel-extract replay`: the three nodes as separate processes over real DDS, fed from a bag.
 
-The bag's clouds are published on `points` with their original header stamps, at the
+The bag's clouds are published on `points` (depth images on `depth/image`, with their
+camera info on `depth/camera_info`, and the registration node set to input:=depth_image)
+with their original header stamps, at the
 bag's pace scaled by `rate` (0 = as fast as the registration node takes them). A frame is
 never published before the registration node has answered the previous one, so the
 replay loses nothing however slow the machine is; the printed rate says what was
@@ -63,7 +65,7 @@ def _ros_type(name: str):
     return getattr(module, message)
 
 
-def _start_nodes(params_file: Path | None, namespace: str | None, logs: Path) -> dict:
+def _start_nodes(params_file: Path | None, namespace: str | None, logs: Path, depth_image: bool = False) -> dict:
     logs.mkdir(parents=True, exist_ok=True)
     env = dict(os.environ, PYTHONUNBUFFERED='1')
     processes = {}
@@ -73,6 +75,8 @@ def _start_nodes(params_file: Path | None, namespace: str | None, logs: Path) ->
             command += ['--params-file', str(params_file)]
         if name == 'registration_node':   # a bag replay must not lose clouds (see the node)
             command += ['-p', 'input_reliability:=reliable']
+            if depth_image:
+                command += ['-p', 'input:=depth_image']
         if namespace:
             command += ['-r', f'__ns:={namespace}']
         log = open(logs / f'{name}.log', 'w')
@@ -106,14 +110,20 @@ def _log_tail(path: Path, lines: int = 3) -> str:
 class _Recorder:
     """rclpy node: publishes the input clouds, records and decodes every output."""
 
-    def __init__(self, node, writer, store, received: Received):
+    def __init__(self, node, writer, store, received: Received, depth_image: bool = False):
         from rclpy.serialization import deserialize_message
 
         from .nodes.common import LATCHED_QOS, STREAM_QOS
         self.node, self.writer, self.received = node, writer, received
         self._deserialize = deserialize_message
         self.condition = threading.Condition()
-        self.publisher = node.create_publisher(_ros_type('sensor_msgs/msg/PointCloud2'), 'points', STREAM_QOS)
+        if depth_image:
+            self.publisher = node.create_publisher(_ros_type('sensor_msgs/msg/Image'), 'depth/image', STREAM_QOS)
+            self.info_publisher = node.create_publisher(_ros_type('sensor_msgs/msg/CameraInfo'),
+                                                        'depth/camera_info', STREAM_QOS)
+        else:
+            self.publisher = node.create_publisher(_ros_type('sensor_msgs/msg/PointCloud2'), 'points', STREAM_QOS)
+            self.info_publisher = None
         self.connections = {}
         for topic, type_name, latched in OUTPUT_TOPICS:
             resolved = node.resolve_topic_name(topic)
@@ -175,7 +185,7 @@ def replay(input_path, out, rate: float = 1.0, topic: str | None = None, params_
 
     from .nodes.conversions import stamp_ns
 
-    from .bag import _raw_messages, cloud_topics, select_cloud_topic, typestore
+    from .bag import _raw_messages, camera_info_topic, cloud_topics, is_depth_topic, select_cloud_topic, typestore
     from .params import default_params_file, load_params_file
 
     input_path, out = Path(input_path), Path(out)
@@ -193,11 +203,18 @@ def replay(input_path, out, rate: float = 1.0, topic: str | None = None, params_
     out.mkdir(parents=True, exist_ok=True)
 
     store = typestore()
-    cloud_type = _ros_type('sensor_msgs/msg/PointCloud2')
+    depth_image = is_depth_topic(input_path, topic)
+    cloud_type = _ros_type('sensor_msgs/msg/Image' if depth_image else 'sensor_msgs/msg/PointCloud2')
+    infos = []
+    if depth_image:   # (stamp ns, raw CDR) of every camera info, to send before its image
+        info_type = _ros_type('sensor_msgs/msg/CameraInfo')
+        infos = [(stamp_ns(deserialize_message(bytes(raw), info_type).header), bytes(raw))
+                 for _t, raw in _raw_messages(input_path, camera_info_topic(topic))]
+        info_stamps = np.array([stamp for stamp, _ in infos])
     received = Received()
     context = rclpy.Context()
     rclpy.init(context=context)
-    processes = _start_nodes(params_file, namespace, out / 'logs')
+    processes = _start_nodes(params_file, namespace, out / 'logs', depth_image)
     writer = Writer(out / 'output.mcap', version=9, storage_plugin=StoragePlugin.MCAP)
     writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
     writer.open()
@@ -207,7 +224,7 @@ def replay(input_path, out, rate: float = 1.0, topic: str | None = None, params_
     spinner = threading.Thread(target=executor.spin, daemon=True)
     exit_codes = {}
     try:
-        recorder = _Recorder(node, writer, store, received)
+        recorder = _Recorder(node, writer, store, received, depth_image)
         spinner.start()
 
         def alive():
@@ -223,6 +240,7 @@ def replay(input_path, out, rate: float = 1.0, topic: str | None = None, params_
 
         def connected():
             return (recorder.publisher.get_subscription_count() >= 1
+                    and (recorder.info_publisher is None or recorder.info_publisher.get_subscription_count() >= 1)
                     and all(node.count_publishers(t) >= 1 for t, _, _ in OUTPUT_TOPICS)
                     and all(node.count_subscribers(t) >= n for t, n in internal.items()))
         if not recorder.wait_for(connected, 120.0, alive):
@@ -241,6 +259,9 @@ def replay(input_path, out, rate: float = 1.0, topic: str | None = None, params_
                 due = started + (stamp - first_stamp) * 1e-9 / rate
                 time.sleep(max(0.0, due - time.perf_counter()))
             received.published_at[stamp] = time.perf_counter()
+            if depth_image:   # the camera info at or before the image goes first
+                recorder.info_publisher.publish(
+                    infos[max(int(np.searchsorted(info_stamps, stamp, side='right')) - 1, 0)][1])
             recorder.publisher.publish(bytes(raw))
             previous = stamp
             if progress:

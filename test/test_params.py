@@ -7,6 +7,7 @@ from skel_extract_ros.core.joints import JointParams
 from skel_extract_ros.core.preprocess import PreprocessParams
 from skel_extract_ros.core.registration import RegistrationParams
 from skel_extract_ros.core.rest_pose import RestPoseParams
+from skel_extract_ros.core.segmentation import SegmentationParams
 from skel_extract_ros.core.structure import StructureParams
 from skel_extract_ros.params import (DEFAULT_PARAMS_FILE, ParamsError, load_params_file,
                                      pipeline_params, registration_params_from_dict)
@@ -14,10 +15,11 @@ from skel_extract_ros.params import (DEFAULT_PARAMS_FILE, ParamsError, load_para
 
 def test_yaml_defaults_equal_dataclass_defaults():
     nodes = load_params_file(DEFAULT_PARAMS_FILE)
-    registration, rest, preprocess = registration_params_from_dict(nodes['registration_node'])
+    registration, rest, preprocess, segmentation = registration_params_from_dict(nodes['registration_node'])
     assert registration == RegistrationParams()
     assert rest == RestPoseParams()
     assert preprocess == PreprocessParams()
+    assert segmentation == SegmentationParams()
     # every dataclass field is documented in the file
     settings = pipeline_params(nodes)
     assert settings['structure'] == StructureParams() and settings['joints'] == JointParams()
@@ -25,7 +27,8 @@ def test_yaml_defaults_equal_dataclass_defaults():
                          (JointParams, nodes['joint_estimation_node']),
                          (RegistrationParams, nodes['registration_node']),
                          (RestPoseParams, nodes['registration_node']['rest_pose']),
-                         (PreprocessParams, nodes['registration_node']['preprocess'])):
+                         (PreprocessParams, nodes['registration_node']['preprocess']),
+                         (SegmentationParams, nodes['registration_node']['segmentation'])):
         assert {f.name for f in dataclasses.fields(cls)} <= set(section)
 
 
@@ -58,7 +61,8 @@ def test_every_node_parameter_is_documented_in_the_file_the_code_and_the_readme(
     declared = {
         'registration_node': [f.name for f in dataclasses.fields(RegistrationParams)]
         + ['rest_pose.' + f.name for f in dataclasses.fields(RestPoseParams)]
-        + ['preprocess.' + f.name for f in dataclasses.fields(PreprocessParams)],
+        + ['preprocess.' + f.name for f in dataclasses.fields(PreprocessParams)]
+        + ['segmentation.' + f.name for f in dataclasses.fields(SegmentationParams)],
         'accumulator_node': [f.name for f in dataclasses.fields(StructureParams)],
         'joint_estimation_node': [f.name for f in dataclasses.fields(JointParams)],
     }

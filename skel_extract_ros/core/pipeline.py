@@ -1,7 +1,8 @@
 """The whole method on a sequence: Step 0-1 (rest pose, registration), Step 2 (structure),
 Step 3 (joints). Used by `skel-extract run`; no I/O, no ROS.
 
-    >>> result = SkeletonPipeline().run(frames)      # iterable of raw (N_t, 3) arrays
+    >>> registered = SkeletonPipeline().register(frames)   # raw (H, W, 3) or (N_t, 3) clouds
+    >>> result = pipeline.extract(registered)
     >>> result.joint_positions                       # (F, J, 3) after Step 3
 """
 from __future__ import annotations
@@ -16,6 +17,7 @@ from .joints import JointEstimate, JointEstimation, JointParams
 from .preprocess import PreprocessParams
 from .registration import STATUS_OK, RegistrationParams
 from .rest_pose import RestPoseParams
+from .segmentation import SegmentationParams
 from .sequence import SequenceRegistration
 from .skeleton_model import SkeletonModel
 from .structure import SkeletalStructure, StructureParams, extract_structure
@@ -44,8 +46,9 @@ class SkeletonPipeline:
 
     def __init__(self, registration: RegistrationParams | None = None, rest_pose: RestPoseParams | None = None,
                  preprocess: PreprocessParams | None = None, structure: StructureParams | None = None,
-                 joints: JointParams | None = None):
-        self.registration = SequenceRegistration(registration, rest_pose, preprocess, keep_observed=True)
+                 joints: JointParams | None = None, segmentation: SegmentationParams | None = None):
+        self.registration = SequenceRegistration(registration, rest_pose, preprocess, keep_observed=True,
+                                                 segmentation_params=segmentation)
         self.structure_params = structure or StructureParams()
         self.joint_params = joints or JointParams()
 
@@ -62,7 +65,8 @@ class SkeletonPipeline:
         frames = np.flatnonzero(statuses == STATUS_OK)
         window = registered[frames].astype(np.float64)
         rest = reg.rest_pose_.points
-        seconds = {'preprocess': reg.times_.preprocess, 'rest_pose': reg.times_.rest_pose,
+        seconds = {'segmentation': reg.times_.segmentation, 'preprocess': reg.times_.preprocess,
+                   'rest_pose': reg.times_.rest_pose,
                    'registration': reg.times_.registration}
         started = time.perf_counter()
         structure = extract_structure(rest, window, self.structure_params)

@@ -1,4 +1,5 @@
-"""Registration of a whole sequence: preprocessing, rest pose, then Alg. 1 frame by frame.
+"""Registration of a whole sequence: subject segmentation, preprocessing, rest pose, then
+Alg. 1 frame by frame.
 
     >>> registration = SequenceRegistration(RegistrationParams())
     >>> registered = registration.register(frames)      # iterable of (N_t, 3) -> (F, M, 3)
@@ -18,12 +19,34 @@ import numpy as np
 from .preprocess import PreprocessParams, Preprocessor
 from .registration import STATUS_EMPTY, NonRigidRegistration, RegistrationParams
 from .rest_pose import RestPose, RestPoseError, RestPoseParams
+from .segmentation import STATUS_NOBODY, Segmentation, SegmentationParams, SubjectSegmenter
+
+# A subject that touches the image border is partly out of view: its rest pose waits until
+# it is whole, but no longer than this (a subject too close to ever fit gets one anyway).
+PARTIAL_VIEW_PATIENCE_FRAMES = 30
+
+
+def split_layout(raw: np.ndarray) -> tuple:
+    """(points (N, 3), height, width) of a frame given as (H, W, 3) organized or (N, 3)."""
+    raw = np.asarray(raw)
+    if raw.ndim == 3 and raw.shape[2] == 3:
+        return raw.reshape(-1, 3), raw.shape[0], raw.shape[1]
+    return raw, 1, len(raw)
+
+
+def waits_for_subject(segmentation: Segmentation, partial_frames: int) -> bool:
+    """Whether the rest pose should wait: nobody in view, or the subject only partly in
+    view (for fewer than PARTIAL_VIEW_PATIENCE_FRAMES frames so far)."""
+    if segmentation.status == STATUS_NOBODY:
+        return True
+    return segmentation.touches_border and partial_frames < PARTIAL_VIEW_PATIENCE_FRAMES
 
 
 @dataclass
 class StepTimes:
     """Wall-clock seconds spent in each step, and per-frame registration times (s)."""
 
+    segmentation: float = 0.0
     preprocess: float = 0.0
     rest_pose: float = 0.0
     registration: float = 0.0
@@ -31,46 +54,61 @@ class StepTimes:
 
 
 class SequenceRegistration:
-    """Rest pose from the first usable frame, then every frame registered from the previous.
+    """The subject found in every frame, its rest pose from the first frame where it is
+    wholly in view, then every frame registered from the previous.
 
-    Parameters are dataclasses (see their docstrings). Frames before the first usable one
-    get NaN points and status 'empty'. Attributes set by `register` (sklearn style):
-    rest_pose_, statuses_ (F,), sigma2_ (F,), iterations_ (F,), times_, and with
-    keep_observed the preprocessed frames observed_ (list of (N_t, 3) float32).
+    Parameters are dataclasses (see their docstrings). Frames before the rest pose get NaN
+    points and status 'empty'. Attributes set by `register` (sklearn style): rest_pose_,
+    statuses_ (F,), sigma2_ (F,), iterations_ (F,), times_, segmentation_ (F,) Segmentation
+    summaries (status, subject points, background fraction, moving regions; masks dropped),
+    and with keep_observed the preprocessed frames observed_ (list of (N_t, 3) float32).
     """
 
     def __init__(self, params: RegistrationParams | None = None,
                  rest_params: RestPoseParams | None = None,
                  preprocess_params: PreprocessParams | None = None,
-                 keep_observed: bool = False):
+                 keep_observed: bool = False,
+                 segmentation_params: SegmentationParams | None = None):
         self.params = params or RegistrationParams()
         self.rest_params = rest_params or RestPoseParams()
         self.preprocess_params = preprocess_params or PreprocessParams()
+        self.segmentation_params = segmentation_params or SegmentationParams()
         # Joint estimation (Alg. 2) needs the preprocessed points of every frame; keeping
         # them costs about 60 kB per frame (float32, 5000 points).
         self.keep_observed = keep_observed
 
     def register(self, frames: Iterable[np.ndarray],
                  on_frame: Callable[[int, str], None] | None = None) -> np.ndarray:
-        """Register raw frames ((N_t, 3) arrays, NaN allowed) -> (F, M, 3) float32 metres.
+        """Register raw frames -> (F, M, 3) float32 metres. A frame is an organized cloud
+        (H, W, 3) or (N, 3) points, NaN allowed.
 
         `on_frame(index, status)` is called after each frame (progress reporting).
         """
+        segmenter = SubjectSegmenter(self.segmentation_params)
         preprocess = Preprocessor(self.preprocess_params)
         self.times_ = StepTimes()
         self.rest_pose_ = None
+        self.segmentation_ = []
         registration = None
+        partial_frames = 0
         points, statuses, sigma2, iterations = [], [], [], []
         self.observed_ = []
         M = self.rest_params.n_points
         for index, raw in enumerate(frames):
             started = time.perf_counter()
-            observed = preprocess(raw)
+            flat, height, width = split_layout(raw)
+            segmentation = segmenter(flat, height, width)
+            self.times_.segmentation += time.perf_counter() - started
+            self.segmentation_.append(segmentation.summary())
+            started = time.perf_counter()
+            observed = preprocess(flat[segmentation.mask])
             self.times_.preprocess += time.perf_counter() - started
             if self.keep_observed:
                 self.observed_.append(observed.astype(np.float32))
             if registration is None:
-                if len(observed) >= max(100, M // 10):
+                waiting = waits_for_subject(segmentation, partial_frames)
+                partial_frames += int(segmentation.touches_border)
+                if not waiting and len(observed) >= max(100, M // 10):
                     started = time.perf_counter()
                     try:
                         self.rest_pose_ = RestPose.from_points(observed, self.rest_params)

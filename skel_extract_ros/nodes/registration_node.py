@@ -2,11 +2,20 @@
 new cloud registered from the previous one (Alg. 1).
 
 Subscribes  points            sensor_msgs/PointCloud2  sensor-data QoS (best effort; reliable
-                              with input_reliability:=reliable)
+                              with input_reliability:=reliable), with input:=cloud (default)
+            depth/image       sensor_msgs/Image (16UC1 mm, 32FC1 m) and
+            depth/camera_info sensor_msgs/CameraInfo, with input:=depth_image: back-projected
+                              into the same organized cloud
 Publishes   registered_points PointCloud2 (M points, fixed order, input header; ok frames only)
             filtered_points   PointCloud2 (the preprocessed cloud, input header; every decodable cloud)
             rest_points       PointCloud2 (float64, transient local; the rest pose Q, header of its cloud)
-Service     ~/reset           std_srvs/Trigger: forget the rest pose, build a new one
+Services    ~/reset           std_srvs/Trigger: forget the rest pose, build a new one
+            ~/reset_background std_srvs/Trigger: forget the learned scene (planes, motion
+                              evidence, the subject) after the camera moved
+
+Every cloud is segmented first (core/segmentation.py): only the subject, the connected
+region that moves, is preprocessed, published on filtered_points and registered; the rest
+pose waits until the subject is wholly in view.
 
 Registration takes longer than a camera frame, so clouds are taken off the executor by
 a cheap callback into a queue of `queue_size` and processed by one worker thread; when
@@ -20,12 +29,15 @@ import time
 
 import numpy as np
 from rclpy.node import Node
-from sensor_msgs.msg import PointCloud2
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_srvs.srv import Trigger
 
 from ..core.preprocess import PreprocessParams, Preprocessor
 from ..core.registration import STATUS_OK, NonRigidRegistration, RegistrationParams
 from ..core.rest_pose import RestPose, RestPoseError, RestPoseParams
+from ..core.segmentation import STATUS_NOBODY, SegmentationParams, SubjectSegmenter
+from ..core.sequence import PARTIAL_VIEW_PATIENCE_FRAMES, waits_for_subject
+from ..depth_image import DepthDecodeError, depth_to_cloud
 from ..params import NODE_ONLY, registration_params_from_dict
 from ..pointcloud import CloudDecodeError, decode_xyz
 from .common import (LATCHED_QOS, SENSOR_QOS, STREAM_QOS, ParameterError, ThrottledLog, declare,
@@ -41,13 +53,18 @@ class RegistrationNode(Node):
         values = declare_dataclass(self, SECTION, RegistrationParams)
         values['rest_pose'] = declare_dataclass(self, SECTION, RestPoseParams, 'rest_pose.')
         values['preprocess'] = declare_dataclass(self, SECTION, PreprocessParams, 'preprocess.')
+        values['segmentation'] = declare_dataclass(self, SECTION, SegmentationParams, 'segmentation.')
         self.queue_size = declare(self, SECTION, 'queue_size', NODE_ONLY[SECTION]['queue_size'])
         reliability = declare(self, SECTION, 'input_reliability', NODE_ONLY[SECTION]['input_reliability'])
         if reliability not in ('best_effort', 'reliable'):
             raise ParameterError(f"parameter input_reliability must be 'best_effort' or 'reliable', "
                                  f'got {reliability!r}')
+        self.input = declare(self, SECTION, 'input', NODE_ONLY[SECTION]['input'])
+        if self.input not in ('cloud', 'depth_image'):
+            raise ParameterError(f"parameter input must be 'cloud' or 'depth_image', got {self.input!r}")
         try:
-            self.params, self.rest_params, self.preprocess_params = registration_params_from_dict(values)
+            (self.params, self.rest_params, self.preprocess_params,
+             self.segmentation_params) = registration_params_from_dict(values)
         except ValueError as error:
             raise ParameterError(str(error)) from None
         self.log = ThrottledLog(self.get_logger())
@@ -55,6 +72,8 @@ class RegistrationNode(Node):
         self.filtered_pub = self.create_publisher(PointCloud2, 'filtered_points', STREAM_QOS)
         self.rest_pub = self.create_publisher(PointCloud2, 'rest_points', LATCHED_QOS)
         self.create_service(Trigger, '~/reset', self._on_reset)
+        self.create_service(Trigger, '~/reset_background', self._on_reset_background)
+        self._background_reset_requested = False
         self._queue = collections.deque()
         self._wake = threading.Condition()
         self._stopping = False
@@ -67,15 +86,27 @@ class RegistrationNode(Node):
         self._worker.start()
         # best effort matches every driver; reliable (for bag replay) never loses a
         # fragmented megabyte cloud to a full socket buffer, but needs a reliable publisher
-        self.create_subscription(PointCloud2, 'points', self._on_cloud,
-                                 SENSOR_QOS if reliability == 'best_effort' else STREAM_QOS)
-        self.get_logger().info(f'waiting for clouds on {self.resolve_topic_name("points")} '
+        qos = SENSOR_QOS if reliability == 'best_effort' else STREAM_QOS
+        self.camera_info = None
+        if self.input == 'cloud':
+            self.create_subscription(PointCloud2, 'points', self._on_cloud, qos)
+            source = self.resolve_topic_name('points')
+        else:
+            self.create_subscription(CameraInfo, 'depth/camera_info', self._on_camera_info, qos)
+            self.create_subscription(Image, 'depth/image', self._on_cloud, qos)
+            source = (f'{self.resolve_topic_name("depth/image")} with '
+                      f'{self.resolve_topic_name("depth/camera_info")}')
+        self.get_logger().info(f'waiting for {self.input.replace("_", " ")}s on {source} '
                                f'(M = {self.rest_params.n_points} registered points)')
 
     # -- executor side: cheap ------------------------------------------------------------
-    def _on_cloud(self, msg: PointCloud2) -> None:
+    def _on_camera_info(self, msg: CameraInfo) -> None:
+        self.camera_info = msg
+
+    def _on_cloud(self, msg) -> None:
+        """A PointCloud2, or a depth Image (queued with the camera info it goes with)."""
         with self._wake:
-            self._queue.append((time.perf_counter(), msg))
+            self._queue.append((time.perf_counter(), (msg, self.camera_info)))
             dropped = 0
             while len(self._queue) > self.queue_size:
                 self._queue.popleft()
@@ -95,8 +126,18 @@ class RegistrationNode(Node):
         self.get_logger().info('reset requested: ' + response.message)
         return response
 
+    def _on_reset_background(self, request, response):
+        with self._wake:
+            self._background_reset_requested = True
+        response.success = True
+        response.message = 'the scene is learned again from the next cloud (planes, motion, subject)'
+        self.get_logger().info('background reset requested')
+        return response
+
     # -- worker side ---------------------------------------------------------------------
     def _start_over(self) -> None:
+        self.segmenter = SubjectSegmenter(self.segmentation_params)
+        self.partial_frames = 0
         self.preprocessor = Preprocessor(self.preprocess_params)
         self.registration = None
         self.rest_pose = None
@@ -113,12 +154,15 @@ class RegistrationNode(Node):
                     self._wake.wait()
                 if self._stopping:
                     return
-                received, msg = self._queue.popleft()
+                received, (msg, info) = self._queue.popleft()
                 if self._reset_requested:
                     self._reset_requested = False
                     self._start_over()
+                if self._background_reset_requested:
+                    self._background_reset_requested = False
+                    self.segmenter.reset()
             try:
-                self._process(msg)
+                self._process(msg, info)
             except Exception as error:  # never let one bad cloud end the node
                 self.log.warn('failed', f'cloud at {stamp_ns(msg.header) * 1e-9:.3f} s failed: '
                                         f'{type(error).__name__}: {error}')
@@ -130,13 +174,32 @@ class RegistrationNode(Node):
                                        f'{self._median_ms():.0f} ms, worst {max(self.latencies_ms):.0f} ms, '
                                        f'{self.skipped} skipped')
 
-    def _process(self, msg: PointCloud2) -> None:
-        stamp, frame_id = stamp_ns(msg.header), msg.header.frame_id
+    def _decode(self, msg, info) -> tuple:
+        """(points (H*W, 3), height, width) of a cloud or a depth image, or None (warned)."""
+        frame_id = msg.header.frame_id
+        if isinstance(msg, PointCloud2):
+            try:
+                return decode_xyz(msg), int(msg.height), int(msg.width)
+            except CloudDecodeError as error:
+                self.log.warn(f'decode:{str(error)[:24]}', f'ignoring a cloud in frame {frame_id!r}: {error}')
+                return None
+        if info is None:
+            self.log.warn('no_camera_info', 'ignoring depth images until a CameraInfo arrives on '
+                                            f'{self.resolve_topic_name("depth/camera_info")}')
+            return None
         try:
-            raw = decode_xyz(msg)
-        except CloudDecodeError as error:
-            self.log.warn(f'decode:{str(error)[:24]}', f'ignoring a cloud in frame {frame_id!r}: {error}')
+            cloud = depth_to_cloud(msg, info)
+        except DepthDecodeError as error:
+            self.log.warn(f'depth:{str(error)[:24]}', f'ignoring a depth image in frame {frame_id!r}: {error}')
+            return None
+        return cloud.reshape(-1, 3), cloud.shape[0], cloud.shape[1]
+
+    def _process(self, msg, info=None) -> None:
+        stamp, frame_id = stamp_ns(msg.header), msg.header.frame_id
+        decoded = self._decode(msg, info)
+        if decoded is None:
             return
+        raw, height, width = decoded
         if len(raw) > self.preprocess_params.max_input_points:
             self.log.warn('large', f'cloud of {len(raw)} points: randomly thinned to '
                                    f'preprocess.max_input_points = {self.preprocess_params.max_input_points}')
@@ -154,9 +217,26 @@ class RegistrationNode(Node):
                                           'with a new rest pose')
                 self._start_over()
         self.last_stamp, self.frame_id = stamp, frame_id
-        observed = self.preprocessor(raw)
+        segmentation = self.segmenter(raw, height, width)
+        if segmentation.status == STATUS_NOBODY:
+            self.log.warn('nobody', f'nobody in view: no region of the {segmentation.n_valid} valid points '
+                                    'has moved yet (waiting for the subject)')
+        elif segmentation.n_moving_regions > 1:
+            self.log.warn('several', f'{segmentation.n_moving_regions} moving regions (people?) in view: '
+                                     'following the one that moves most')
+        self.get_logger().debug(f'subject {segmentation.n_subject} of {segmentation.n_valid} points, '
+                                f'background {100 * segmentation.background_fraction:.1f} % removed',
+                                throttle_duration_sec=1.0)
+        observed = self.preprocessor(raw[segmentation.mask])
         self.filtered_pub.publish(cloud_message(observed, msg.header))
         if self.registration is None:
+            waiting = waits_for_subject(segmentation, self.partial_frames)
+            self.partial_frames += int(segmentation.touches_border)
+            if waiting:
+                if segmentation.status != STATUS_NOBODY:
+                    self.log.warn('partial', 'no rest pose yet: the subject is only partly in view '
+                                             f'(waiting up to {PARTIAL_VIEW_PATIENCE_FRAMES} frames for all of it)')
+                return
             if len(observed) < max(100, self.rest_params.n_points // 10):
                 self.log.warn('no_rest', f'no rest pose yet: only {len(observed)} points after preprocessing '
                                          f'(of {np.isfinite(raw).all(axis=1).sum()} valid); is the subject in view?')

@@ -5,19 +5,24 @@ from pathlib import Path
 
 import numpy as np
 
-from ..bag import DEFAULT_TOPIC, write_cloud_bag
-from .sequence import SimulatedSequence
+from ..bag import DEFAULT_DEPTH_TOPIC, DEFAULT_TOPIC, write_cloud_bag, write_depth_bag
+from .render import SimulatedSequence
 
 GT_FILENAME = 'gt.npz'
 
 
-def write_simulated_bag(sequence: SimulatedSequence, out: Path, topic: str = DEFAULT_TOPIC) -> Path:
-    """Write `sequence` as the bag directory `out`, ground truth at `out/gt.npz`.
-
-    Returns the path of gt.npz.
-    """
+def write_simulated_bag(sequence: SimulatedSequence, out: Path, topic: str | None = None,
+                        depth_image: bool = False) -> Path:
+    """Write `sequence` as the bag directory `out`, ground truth at `out/gt.npz`: organized
+    PointCloud2 clouds, or with `depth_image` 16UC1 depth images (mm) with a CameraInfo
+    each, as depth drivers publish by default. Returns the path of gt.npz."""
     out = Path(out)
-    write_cloud_bag(out, sequence.clouds, sequence.stamps_ns, sequence.frame_id, topic)
+    if depth_image:
+        width, height, fx, fy, cx, cy = sequence.ground_truth['intrinsics']
+        write_depth_bag(out, [cloud[..., 2] for cloud in sequence.clouds], sequence.stamps_ns,
+                        sequence.frame_id, (fx, fy, cx, cy), topic or DEFAULT_DEPTH_TOPIC)
+    else:
+        write_cloud_bag(out, sequence.clouds, sequence.stamps_ns, sequence.frame_id, topic or DEFAULT_TOPIC)
     gt_path = out / GT_FILENAME
     np.savez_compressed(gt_path, **sequence.ground_truth)
     return gt_path

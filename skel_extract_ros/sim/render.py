@@ -104,7 +104,9 @@ def render_body(body: AnimatedBody, camera_from_world: np.ndarray, intrinsics: I
     joints (F, G, 3), joint_names / joint_parents / joint_bones (G,), bone_names /
     bone_parents (B,), bone_transforms (F, B, 4, 4) camera-from-bone, surface_points
     (F, S, 3) with surface_bone_ids (S,) (and surface_faces (T, 3) for a deforming mesh),
-    subject_mask (F, H, W) bool: pixels whose first surface is the body, before noise.
+    subject_mask (F, H, W) bool: pixels whose first surface is the body, before noise;
+    subject_measured (F, H, W): those of them the noise left on the body (not dropped,
+    not turned into a flying pixel or an outlier): what a segmentation can keep.
     """
     if scene not in SCENES:
         raise ValueError(f'unknown scene {scene!r}; choose one of {", ".join(SCENES)}')
@@ -131,6 +133,7 @@ def render_body(body: AnimatedBody, camera_from_world: np.ndarray, intrinsics: I
 
     clouds = []
     masks = np.zeros((n_frames, intrinsics.height, intrinsics.width), dtype=bool)
+    measured = np.zeros_like(masks)
     if body.parts is not None:
         surface = np.empty((n_frames, len(local_samples), 3), dtype=np.float32)
     else:
@@ -140,7 +143,10 @@ def render_body(body: AnimatedBody, camera_from_world: np.ndarray, intrinsics: I
         body_meshes = [(v @ to_camera[0].T + to_camera[1], t) for v, t in moved.world_meshes(f)]
         depth, hit_body = camera.render(body_meshes, scene_camera)
         masks[f] = hit_body
-        clouds.append(camera.back_project(noise.apply(depth, rng)))
+        noisy = noise.apply(depth, rng)
+        with np.errstate(invalid='ignore'):
+            measured[f] = hit_body & (np.abs(noisy - depth) <= noise.tolerance(depth))
+        clouds.append(camera.back_project(noisy))
         if body.parts is not None:
             rotations, origins = transforms[f, :, :3, :3], transforms[f, :, :3, 3]
             surface[f] = np.einsum('sij,sj->si', rotations[sample_bones], local_samples) + origins[sample_bones]
@@ -165,6 +171,7 @@ def render_body(body: AnimatedBody, camera_from_world: np.ndarray, intrinsics: I
         'surface_bone_ids': (sample_bones if body.parts is not None else body.skin.vertex_bones).astype(np.int64),
         'subject_scale_m': np.float64(np.linalg.norm(np.ptp(surface[0], axis=0))),
         'subject_mask': masks,
+        'subject_measured': measured,
         'scene': np.array(scene),
         'camera_from_world': camera_from_world,
         'intrinsics': np.array([intrinsics.width, intrinsics.height, intrinsics.fx,

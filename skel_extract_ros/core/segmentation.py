@@ -1,0 +1,423 @@
+"""Finding the subject in a depth camera's view of a room: the connected region that moves.
+
+A camera in a room sees floors, walls, tables and still objects beside the subject. Per
+frame (organized clouds, the common case of a still depth camera):
+
+1. **Planes** (floor, walls, large table tops) are found by RANSAC (Open3D) on a subsample
+   of the pixels that have not moved recently, refreshed every `plane_refresh` frames, and
+   kept only if they extend at least `min_plane_extent` in both directions (a torso is a
+   plane too, but a small one). A pixel is on a plane when its depth along its own ray is
+   within `noise_sigmas` noise deviations of the plane's: at grazing angles (the floor near
+   the feet) a perpendicular distance would eat the feet.
+2. **Regions**: the remaining pixels are split at depth jumps into connected regions
+   (scipy.ndimage.label), so the subject is apart from the wall behind it.
+3. **Motion** is the evidence: a pixel moved when its depth changed by more than
+   `noise_sigmas` noise deviations since `motion_lag` frames ago (appearing and vanishing
+   count); isolated flickers are opened away and the evidence fades over `motion_memory`
+   frames. The subject is the region with the most motion evidence; it stays the subject
+   while it pauses (regions overlapping the last subject mask keep it), parts split off by
+   self-occlusion (a forearm in front of the torso) are joined when they are within
+   `attach_distance` in 3-D, a still object never moves and never becomes the subject, and a
+   second moving region is reported (`n_moving_regions`) but not followed.
+
+The noise is measured on the sequence itself: the depth deviation sigma(r) = c r^2 (r the
+range, as for structured-light and time-of-flight cameras) with c from the ray residuals of
+the largest plane, else from frame-to-frame differences, never below `min_noise_c`.
+
+Unorganized clouds (no pixel grid) take the same steps on a voxel grid: planes by RANSAC,
+regions by DBSCAN (Open3D), motion by nearest-neighbour distance to the previous frame.
+
+No rclpy here: `skel-extract run`, `replay` and the nodes all use `SubjectSegmenter`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import open3d as o3d
+from scipy import ndimage
+from scipy.spatial import cKDTree
+
+STATUS_SUBJECT = 'subject'
+STATUS_NOBODY = 'nobody'
+STATUS_OFF = 'off'
+
+
+@dataclass
+class SegmentationParams:
+    """Subject segmentation parameters.
+
+    enabled: find the subject (default); off = every valid point is the subject.
+    noise_sigmas: a depth change or a distance to a plane counts when it exceeds this many
+        measured noise deviations.
+    min_noise_c: floor of the noise coefficient c in sigma(r) = c r^2 (1/m); 0.001 is 9 mm
+        at 3 m, below what consumer depth cameras reach.
+    motion_lag: frames between the depths compared for motion (slow motion adds up).
+    motion_memory: frames over which motion evidence fades (60 = 2 s at 30 Hz).
+    max_planes: planes (floor, walls, table tops) removed at most.
+    min_plane_extent: m; a plane smaller than this in either direction is kept (it may be
+        the subject's torso or back).
+    plane_refresh: frames between plane fits (planes of a still camera do not change).
+    attach_distance: m; a moving region this close to the subject in 3-D is part of it.
+    min_subject_points: a subject region smaller than this (points) is nobody.
+    seed: RANSAC seed.
+    """
+
+    enabled: bool = True
+    noise_sigmas: float = 3.0
+    min_noise_c: float = 0.001
+    motion_lag: int = 3
+    motion_memory: int = 60
+    max_planes: int = 4
+    min_plane_extent: float = 0.8
+    plane_refresh: int = 30
+    attach_distance: float = 0.15
+    min_subject_points: int = 200
+    seed: int = 0
+
+    def __post_init__(self):
+        checks = {'noise_sigmas': self.noise_sigmas > 0, 'min_noise_c': self.min_noise_c > 0,
+                  'motion_lag': self.motion_lag >= 1, 'motion_memory': self.motion_memory >= 1,
+                  'max_planes': self.max_planes >= 0, 'min_plane_extent': self.min_plane_extent > 0,
+                  'plane_refresh': self.plane_refresh >= 1, 'attach_distance': self.attach_distance >= 0,
+                  'min_subject_points': self.min_subject_points >= 1}
+        bad = [name for name, ok in checks.items() if not ok]
+        if bad:
+            raise ValueError(f'segmentation parameter(s) out of range: '
+                             + ', '.join(f'{n}={getattr(self, n)}' for n in bad))
+
+
+@dataclass
+class Segmentation:
+    """The subject in one frame.
+
+    mask: (N,) bool over the input points (row-major pixels for organized clouds).
+    status: 'subject', 'nobody' (no region has moved, or the subject left) or 'off'.
+    n_moving_regions: separate moving regions seen (2 = two people: the one that moves most
+        is followed). touches_border: the subject reaches the image border (partly in view).
+    background_fraction: share of the valid points that are not the subject.
+    """
+
+    mask: np.ndarray
+    status: str
+    n_valid: int
+    n_moving_regions: int = 0
+    touches_border: bool = False
+    noise_c: float = float('nan')
+    n_planes: int = 0
+    n_subject: int = -1
+
+    def __post_init__(self):
+        if self.n_subject < 0:
+            self.n_subject = int(self.mask.sum())
+
+    @property
+    def background_fraction(self) -> float:
+        return 1.0 - self.n_subject / self.n_valid if self.n_valid else 0.0
+
+    def summary(self) -> 'Segmentation':
+        """The same without the mask (for keeping one per frame of a long sequence)."""
+        return Segmentation(np.empty(0, dtype=bool), self.status, self.n_valid, self.n_moving_regions,
+                            self.touches_border, self.noise_c, self.n_planes, self.n_subject)
+
+
+def _unit_rays(points: np.ndarray) -> tuple:
+    ranges = np.linalg.norm(points, axis=-1)
+    with np.errstate(invalid='ignore', divide='ignore'):
+        return ranges, points / ranges[..., None]
+
+
+class SubjectSegmenter:
+    """Stateful per-frame subject segmentation (see the module docstring).
+
+    >>> segmenter = SubjectSegmenter()
+    >>> result = segmenter(points, height, width)     # (H*W, 3) organized or (N, 3), NaN allowed
+    >>> subject = points[result.mask]
+    """
+
+    def __init__(self, params: SegmentationParams | None = None):
+        self.params = params or SegmentationParams()
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the background: planes, motion evidence, the subject (a moved camera)."""
+        self._planes = []                  # list of (normal (3,), offset d): n.p + d = 0
+        self._frames_since_planes = None
+        self._history = None               # (H, W) motion evidence in [0, 1]
+        self._ranges = []                  # last motion_lag + 1 range images
+        self._subject = None               # (H, W) bool last subject mask
+        self._shape = None
+        self.noise_c = None
+        self._previous_points = None       # unorganized: last frame's subsampled points
+        self._previous_subject = None
+
+    # ------------------------------------------------------------------------------------
+    def __call__(self, points: np.ndarray, height: int = 1, width: int | None = None) -> Segmentation:
+        points = np.asarray(points, dtype=np.float64)
+        valid = np.isfinite(points).all(axis=1)
+        if not self.params.enabled:
+            return Segmentation(valid, STATUS_OFF, int(valid.sum()))
+        width = len(points) if width is None else int(width)
+        if height > 1 and height * width == len(points):
+            return self._organized(points.reshape(height, width, 3), valid.reshape(height, width))
+        return self._unorganized(points, valid)
+
+    # -- noise ---------------------------------------------------------------------------
+    def _update_noise(self, estimate: float | None) -> float:
+        p = self.params
+        if estimate is not None and np.isfinite(estimate) and estimate > 0:
+            # Slow average: one frame of a walking subject must not change the noise model.
+            self.noise_c = estimate if self.noise_c is None else 0.9 * self.noise_c + 0.1 * estimate
+        return max(self.noise_c if self.noise_c is not None else p.min_noise_c, p.min_noise_c)
+
+    # -- planes --------------------------------------------------------------------------
+    def _fit_planes(self, points: np.ndarray) -> tuple:
+        """Planes (normal, d) of `points` (K, 3) extending min_plane_extent both ways, and the
+        noise coefficient from the largest one's ray residuals (None if no plane)."""
+        p = self.params
+        planes, noise = [], None
+        remaining = points
+        for _ in range(p.max_planes):
+            if len(remaining) < 500:
+                break
+            cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(remaining))
+            threshold = 3.0 * max(self.noise_c or p.min_noise_c, p.min_noise_c) * float(np.median(
+                np.linalg.norm(remaining, axis=1))) ** 2
+            # Open3D's RANSAC draws from its global generator: seed it for repeatable runs.
+            o3d.utility.random.seed(p.seed + len(planes))
+            model, inliers = cloud.segment_plane(max(threshold, 0.005), 3, 300)
+            inliers = np.asarray(inliers)
+            if len(inliers) < 0.05 * len(points):
+                break
+            normal, d = np.asarray(model[:3], float), float(model[3])
+            scale = np.linalg.norm(normal)
+            normal, d = normal / scale, d / scale
+            on = remaining[inliers]
+            # extent in the plane: spread along its two in-plane principal directions
+            centred = on - on.mean(axis=0)
+            _, _, axes = np.linalg.svd(centred[:: max(1, len(on) // 2000)], full_matrices=False)
+            spread = np.ptp(centred @ axes[:2].T, axis=0)
+            remaining = np.delete(remaining, inliers, axis=0)
+            if spread.min() < p.min_plane_extent:
+                continue
+            planes.append((normal, d))
+            if noise is None:
+                ranges, rays = _unit_rays(on)
+                along = -d / (rays @ normal) - ranges           # residual along each ray
+                noise = 1.4826 * float(np.median(np.abs(along) / ranges ** 2))
+        return planes, noise
+
+    def _on_planes(self, ranges: np.ndarray, rays: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+        """(...) bool: points within noise_sigmas deviations of a plane, along their ray."""
+        on = np.zeros(ranges.shape, dtype=bool)
+        for normal, d in self._planes:
+            with np.errstate(invalid='ignore', divide='ignore'):
+                plane_range = -d / (rays @ normal)
+                on |= np.abs(ranges - plane_range) < self.params.noise_sigmas * sigma
+        return on
+
+    def _maybe_refit_planes(self, points: np.ndarray, still: np.ndarray) -> None:
+        """Refit the planes every plane_refresh frames on the points in `still` (K, 3)."""
+        p = self.params
+        if self._frames_since_planes is None or self._frames_since_planes >= p.plane_refresh:
+            sample = points[still]
+            if len(sample) > 20000:
+                rng = np.random.default_rng(p.seed)
+                sample = sample[rng.choice(len(sample), 20000, replace=False)]
+            self._planes, noise = self._fit_planes(sample)
+            self._update_noise(noise)
+            self._frames_since_planes = 0
+        self._frames_since_planes += 1
+
+    # -- organized -----------------------------------------------------------------------
+    def _organized(self, points: np.ndarray, valid: np.ndarray) -> Segmentation:
+        p = self.params
+        shape = valid.shape
+        if self._shape != shape:
+            self.reset()
+            self._shape = shape
+            self._history = np.zeros(shape, dtype=np.float32)
+        ranges, rays = _unit_rays(points)
+        ranges = np.where(valid, ranges, np.inf)          # no return = far away, for motion
+
+        # Motion against motion_lag frames ago; the noise from frame-to-frame differences
+        # until a plane gives a better measure.
+        previous = self._ranges[0] if self._ranges else None
+        if previous is not None:
+            both = valid & np.isfinite(previous)
+            if self.noise_c is None and both.sum() > 100:
+                change = np.abs(ranges[both] - previous[both]) / ranges[both] ** 2
+                self._update_noise(1.4826 * float(np.median(change)) / np.sqrt(2.0))
+        c = self._update_noise(None)
+        sigma = c * np.where(valid, ranges, 0.0) ** 2
+        if previous is not None:
+            with np.errstate(invalid='ignore'):
+                changed = np.abs(ranges - previous) > p.noise_sigmas * np.sqrt(2.0) * np.maximum(
+                    sigma, c * np.where(np.isfinite(previous), previous, 0.0) ** 2)
+            changed &= valid | np.isfinite(previous)
+            moved = ndimage.binary_opening(changed, structure=np.ones((3, 3), bool))
+        else:
+            moved = np.zeros(shape, dtype=bool)
+        self._ranges.append(ranges)
+        if len(self._ranges) > p.motion_lag:
+            self._ranges.pop(0)
+        self._history = np.maximum(self._history - 1.0 / p.motion_memory, 0.0)
+        self._history[moved] = 1.0
+
+        flat_points = points.reshape(-1, 3)
+        still = (valid & (self._history == 0.0)).reshape(-1)
+        if self._subject is not None:
+            still &= ~ndimage.binary_dilation(self._subject, iterations=3).reshape(-1)
+        self._maybe_refit_planes(flat_points, still)
+        on_plane = self._on_planes(ranges, rays, sigma) & valid
+        candidates = valid & ~on_plane
+
+        # Depth jumps split regions; a jump is more than the noise and more than a slanted
+        # surface's step between neighbouring pixels (4 pixel footprints).
+        footprint = ranges / max(shape) * 2.0
+        jump = np.maximum(p.noise_sigmas * sigma * 2.0, 4.0 * footprint)
+        finite = np.where(valid, ranges, np.nan)
+        edge = np.zeros(shape, dtype=bool)
+        with np.errstate(invalid='ignore'):
+            dy = np.abs(np.diff(finite, axis=0)) > np.minimum(jump[1:], jump[:-1])
+            dx = np.abs(np.diff(finite, axis=1)) > np.minimum(jump[:, 1:], jump[:, :-1])
+        edge[1:] |= dy
+        edge[:-1] |= dy
+        edge[:, 1:] |= dx
+        edge[:, :-1] |= dx
+        core = candidates & ~edge
+        labels, n_regions = ndimage.label(core)
+        index = np.arange(1, n_regions + 1)
+        if n_regions == 0:
+            return self._nobody(valid, c)
+        sizes = ndimage.sum_labels(core, labels, index)
+        motion = ndimage.sum_labels(self._history, labels, index)
+        overlap = ndimage.sum_labels(self._subject, labels, index) if self._subject is not None \
+            else np.zeros(n_regions)
+        # Evidence that a region moves: more moved pixels than its boundary can flicker.
+        moving = (motion >= np.maximum(20.0, 0.02 * sizes)) & (sizes >= 20)
+        kept = overlap >= 0.3 * sizes
+        chosen_from = moving | kept
+        if not chosen_from.any():
+            return self._nobody(valid, c)
+        score = motion + 10.0 * overlap
+        primary = int(np.argmax(np.where(chosen_from, score, -1.0)))
+        # 3-D boxes of the regions near the primary in the image (a cheap first cut), to
+        # join the parts of the subject that depth jumps split off (a forearm in front of
+        # the torso, a leg behind the other): within attach_distance in 3-D, and moving,
+        # already the subject or no larger than the subject (never a wall).
+        slices = ndimage.find_objects(labels)
+        low, high = self._region_box(points, labels, slices, primary)
+        near = np.zeros(n_regions, dtype=bool)
+        near[primary] = True
+        margin = int(np.ceil(p.attach_distance / max(float(np.nanmin(footprint[labels == primary + 1])) / 2.0, 1e-6)))
+        rows, cols = slices[primary]
+        window = (slice(max(rows.start - margin, 0), rows.stop + margin),
+                  slice(max(cols.start - margin, 0), cols.stop + margin))
+        for label in np.unique(labels[window]):
+            region = int(label) - 1
+            if region < 0 or region == primary:
+                continue
+            region_low, region_high = self._region_box(points, labels, slices, region)
+            gap = np.maximum(np.maximum(region_low - high, low - region_high), 0.0)
+            small = sizes[region] <= sizes[primary] and (region_high - region_low).max() <= (high - low).max()
+            if np.linalg.norm(gap) <= p.attach_distance and (chosen_from[region] or small):
+                near[region] = True
+        # Moving regions apart from the subject: another person (reported, not followed).
+        others = np.flatnonzero(moving & ~near)
+        n_moving = 1 + self._count_groups([self._region_box(points, labels, slices, r) for r in others])
+        subject = np.isin(labels, index[near])
+        # Give back the subject's own boundary pixels (they are "edges" against the
+        # background) unless they lie behind it: mixed pixels between it and the wall.
+        ring = ndimage.binary_dilation(subject, iterations=2) & candidates & ~subject
+        with np.errstate(invalid='ignore'):
+            nearest = ndimage.maximum_filter(np.where(subject, ranges, -np.inf), size=5)
+            subject |= ring & (ranges <= nearest + jump)
+        if subject.sum() < p.min_subject_points:
+            return self._nobody(valid, c)
+        self._subject = subject
+        border = subject[0].any() or subject[-1].any() or subject[:, 0].any() or subject[:, -1].any()
+        return Segmentation(subject.reshape(-1), STATUS_SUBJECT, int(valid.sum()), n_moving, bool(border),
+                            c, len(self._planes))
+
+    @staticmethod
+    def _region_box(points: np.ndarray, labels: np.ndarray, slices: list, region: int) -> tuple:
+        """(low (3,), high (3,)) 3-D box of region `region` (0-based) of `labels`."""
+        window = slices[region]
+        inside = points[window][labels[window] == region + 1]
+        return inside.min(axis=0), inside.max(axis=0)
+
+    @staticmethod
+    def _count_groups(boxes: list, distance: float = 0.3) -> int:
+        """How many groups the 3-D boxes form when boxes closer than `distance` join."""
+        if not boxes:
+            return 0
+        low = np.array([b[0] for b in boxes])
+        high = np.array([b[1] for b in boxes])
+        gap = np.maximum(np.maximum(low[:, None] - high[None], low[None] - high[:, None]), 0.0)
+        adjacency = np.linalg.norm(gap, axis=-1) <= distance
+        from scipy.sparse.csgraph import connected_components
+        return int(connected_components(adjacency, directed=False)[0])
+
+    def _nobody(self, valid: np.ndarray, c: float) -> Segmentation:
+        self._subject = None
+        return Segmentation(np.zeros(valid.size, dtype=bool), STATUS_NOBODY, int(valid.sum()),
+                            0, False, c, len(self._planes))
+
+    # -- unorganized ---------------------------------------------------------------------
+    def _unorganized(self, points: np.ndarray, valid: np.ndarray) -> Segmentation:
+        """Planes, DBSCAN regions and nearest-neighbour motion on a voxel grid."""
+        p = self.params
+        finite = points[valid]
+        if len(finite) < p.min_subject_points:
+            return Segmentation(np.zeros(len(points), bool), STATUS_NOBODY, int(valid.sum()))
+        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(finite))
+        extent = float(np.linalg.norm(np.ptp(finite, axis=0)))
+        voxel = max(extent / 150.0, 0.01)
+        down = np.asarray(cloud.voxel_down_sample(voxel).points)
+        c = self._update_noise(None)
+        ranges, rays = _unit_rays(down)
+        sigma = c * ranges ** 2
+        if self._frames_since_planes is None or self._frames_since_planes >= p.plane_refresh:
+            self._planes, noise = self._fit_planes(down)
+            self._update_noise(noise)
+            self._frames_since_planes = 0
+        self._frames_since_planes += 1
+        keep = ~self._on_planes(ranges, rays, sigma)
+        candidates = down[keep]
+        if len(candidates) < 10:
+            return Segmentation(np.zeros(len(points), bool), STATUS_NOBODY, int(valid.sum()))
+        labels = np.asarray(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(candidates))
+                            .cluster_dbscan(eps=3.0 * voxel, min_points=4))
+        moved = np.zeros(len(candidates), dtype=bool)
+        if self._previous_points is not None and len(self._previous_points):
+            distance, _ = cKDTree(self._previous_points).query(candidates)
+            moved = distance > max(p.noise_sigmas * float(np.median(sigma)), 1.5 * voxel)
+        near_subject = np.zeros(len(candidates), dtype=bool)
+        if self._previous_subject is not None and len(self._previous_subject):
+            distance, _ = cKDTree(self._previous_subject).query(candidates)
+            near_subject = distance <= 2.0 * voxel
+        self._previous_points = down
+        n_regions = int(labels.max()) + 1 if len(labels) else 0
+        if n_regions == 0:
+            return Segmentation(np.zeros(len(points), bool), STATUS_NOBODY, int(valid.sum()))
+        in_region = labels >= 0
+        sizes = np.bincount(labels[in_region], minlength=n_regions)
+        motion = np.bincount(labels[in_region], weights=moved[in_region], minlength=n_regions)
+        overlap = np.bincount(labels[in_region], weights=near_subject[in_region], minlength=n_regions)
+        moving = motion >= np.maximum(5.0, 0.05 * sizes)
+        eligible = moving | (overlap >= 0.3 * sizes)
+        if not eligible.any():
+            self._previous_subject = None
+            return Segmentation(np.zeros(len(points), bool), STATUS_NOBODY, int(valid.sum()))
+        primary = int(np.argmax(np.where(eligible, motion + 10.0 * overlap, -1.0)))
+        subject_down = candidates[labels == primary]
+        self._previous_subject = subject_down
+        # every input point takes the label of its nearest subsampled candidate
+        distance, _ = cKDTree(subject_down).query(finite, distance_upper_bound=1.5 * voxel)
+        mask = np.zeros(len(points), dtype=bool)
+        mask[np.flatnonzero(valid)[np.isfinite(distance)]] = True
+        if mask.sum() < p.min_subject_points:
+            return Segmentation(np.zeros(len(points), bool), STATUS_NOBODY, int(valid.sum()))
+        n_moving = int(moving.sum())
+        return Segmentation(mask, STATUS_SUBJECT, int(valid.sum()), n_moving, False, c, len(self._planes))
