@@ -314,18 +314,39 @@ class SubjectSegmenter:
         rows, cols = slices[primary]
         window = (slice(max(rows.start - margin, 0), rows.stop + margin),
                   slice(max(cols.start - margin, 0), cols.stop + margin))
+        primary_points = points[slices[primary]][labels[slices[primary]] == primary + 1]
+        tree = None
         for label in np.unique(labels[window]):
             region = int(label) - 1
             if region < 0 or region == primary:
                 continue
+            # A few pixels are noise (a wrong depth here and there), not a body part.
+            if not chosen_from[region] and sizes[region] < max(20.0, 0.002 * sizes[primary]):
+                continue
+            # A moving part (a hand split off at a depth jump) may be a little farther; a
+            # moving region as large as the subject is someone else.
+            hand_sized = moving[region] and sizes[region] <= 0.25 * sizes[primary]
+            reach = p.attach_distance * (2.0 if hand_sized else 1.0)
             region_low, region_high = self._region_box(points, labels, slices, region)
             gap = np.maximum(np.maximum(region_low - high, low - region_high), 0.0)
+            if np.linalg.norm(gap) > reach:
+                continue
             small = sizes[region] <= sizes[primary] and (region_high - region_low).max() <= (high - low).max()
-            if np.linalg.norm(gap) <= p.attach_distance and (chosen_from[region] or small):
+            if not (chosen_from[region] or small):
+                continue
+            # boxes overlap; the points themselves must come within attach_distance
+            if tree is None:
+                tree = cKDTree(primary_points[:: max(1, len(primary_points) // 3000)])
+            region_points = points[slices[region]][labels[slices[region]] == region + 1]
+            distance, _ = tree.query(region_points[:: max(1, len(region_points) // 500)],
+                                     distance_upper_bound=reach)
+            if np.isfinite(distance).any():
                 near[region] = True
-        # Moving regions apart from the subject: another person (reported, not followed).
+        # Moving regions apart from the subject, together a tenth of its size: another
+        # person (reported, not followed).
         others = np.flatnonzero(moving & ~near)
-        n_moving = 1 + self._count_groups([self._region_box(points, labels, slices, r) for r in others])
+        n_moving = 1 + self._count_groups([self._region_box(points, labels, slices, r) for r in others],
+                                          sizes[others], 0.1 * sizes[near].sum())
         subject = np.isin(labels, index[near])
         # Give back the subject's own boundary pixels (they are "edges" against the
         # background) unless they lie behind it: mixed pixels between it and the wall.
@@ -348,8 +369,9 @@ class SubjectSegmenter:
         return inside.min(axis=0), inside.max(axis=0)
 
     @staticmethod
-    def _count_groups(boxes: list, distance: float = 0.3) -> int:
-        """How many groups the 3-D boxes form when boxes closer than `distance` join."""
+    def _count_groups(boxes: list, sizes: np.ndarray, min_size: float, distance: float = 0.3) -> int:
+        """How many groups of at least `min_size` pixels the regions (3-D boxes, pixel
+        sizes) form when boxes closer than `distance` join."""
         if not boxes:
             return 0
         low = np.array([b[0] for b in boxes])
@@ -357,7 +379,8 @@ class SubjectSegmenter:
         gap = np.maximum(np.maximum(low[:, None] - high[None], low[None] - high[:, None]), 0.0)
         adjacency = np.linalg.norm(gap, axis=-1) <= distance
         from scipy.sparse.csgraph import connected_components
-        return int(connected_components(adjacency, directed=False)[0])
+        _, group = connected_components(adjacency, directed=False)
+        return int((np.bincount(group, weights=sizes) >= min_size).sum())
 
     def _nobody(self, valid: np.ndarray, c: float) -> Segmentation:
         self._subject = None
