@@ -121,10 +121,11 @@ class Segmentation:
                             self.touches_border, self.noise_c, self.n_planes, self.n_subject)
 
 
-def _unit_rays(points: np.ndarray) -> tuple:
-    ranges = np.linalg.norm(points, axis=-1)
+def _plane_depth(points: np.ndarray, normal: np.ndarray, offset: float) -> np.ndarray:
+    """(...) depth z at which each point's camera ray (through the origin) meets the plane
+    normal . p + offset = 0; inf where the ray runs along the plane."""
     with np.errstate(invalid='ignore', divide='ignore'):
-        return ranges, points / ranges[..., None]
+        return -offset * points[..., 2] / (points @ normal)
 
 
 class SubjectSegmenter:
@@ -202,18 +203,17 @@ class SubjectSegmenter:
                 continue
             planes.append((normal, d))
             if noise is None:
-                ranges, rays = _unit_rays(on)
-                along = -d / (rays @ normal) - ranges           # residual along each ray
-                noise = 1.4826 * float(np.median(np.abs(along) / ranges ** 2))
+                depth = on[:, 2]
+                along = _plane_depth(on, normal, d) - depth      # residual along each ray
+                noise = 1.4826 * float(np.median(np.abs(along) / depth ** 2))
         return planes, noise
 
-    def _on_planes(self, ranges: np.ndarray, rays: np.ndarray, sigma: np.ndarray) -> np.ndarray:
-        """(...) bool: points within noise_sigmas deviations of a plane, along their ray."""
-        on = np.zeros(ranges.shape, dtype=bool)
+    def _on_planes(self, points: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+        """(...) bool: points (..., 3) within noise_sigmas deviations of a plane, in depth
+        along their own ray."""
+        on = np.zeros(points.shape[:-1], dtype=bool)
         for normal, d in self._planes:
-            with np.errstate(invalid='ignore', divide='ignore'):
-                plane_range = -d / (rays @ normal)
-                on |= np.abs(ranges - plane_range) < self.params.noise_sigmas * sigma
+            on |= np.abs(_plane_depth(points, normal, d) - points[..., 2]) < self.params.noise_sigmas * sigma
         return on
 
     def _maybe_refit_planes(self, points: np.ndarray, still: np.ndarray) -> None:
@@ -237,44 +237,51 @@ class SubjectSegmenter:
             self.reset()
             self._shape = shape
             self._history = np.zeros(shape, dtype=np.float32)
-        ranges, rays = _unit_rays(points)
-        ranges = np.where(valid, ranges, np.inf)          # no return = far away, for motion
+        # Depth along the optical axis: the noise of depth cameras grows with it (sigma =
+        # c z^2) and every comparison below is per pixel, along the pixel's own ray.
+        depth = points[..., 2]
+        far = np.where(valid, depth, np.inf)              # no return = far away, for motion
 
         # Motion against motion_lag frames ago; the noise from frame-to-frame differences
         # until a plane gives a better measure.
         previous = self._ranges[0] if self._ranges else None
-        if previous is not None:
+        if previous is not None and self.noise_c is None:
             both = valid & np.isfinite(previous)
-            if self.noise_c is None and both.sum() > 100:
-                change = np.abs(ranges[both] - previous[both]) / ranges[both] ** 2
+            if both.sum() > 100:
+                change = np.abs(far[both] - previous[both]) / far[both] ** 2
                 self._update_noise(1.4826 * float(np.median(change)) / np.sqrt(2.0))
         c = self._update_noise(None)
-        sigma = c * np.where(valid, ranges, 0.0) ** 2
+        sigma = c * np.where(valid, depth, 0.0) ** 2
         if previous is not None:
             with np.errstate(invalid='ignore'):
-                changed = np.abs(ranges - previous) > p.noise_sigmas * np.sqrt(2.0) * np.maximum(
-                    sigma, c * np.where(np.isfinite(previous), previous, 0.0) ** 2)
+                tolerance = (p.noise_sigmas * np.sqrt(2.0) * c) * np.maximum(
+                    np.where(valid, depth, 0.0), np.where(np.isfinite(previous), previous, 0.0)) ** 2
+                changed = np.abs(far - previous) > tolerance
             changed &= valid | np.isfinite(previous)
             moved = ndimage.binary_opening(changed, structure=np.ones((3, 3), bool))
         else:
             moved = np.zeros(shape, dtype=bool)
-        self._ranges.append(ranges)
+        self._ranges.append(far)
         if len(self._ranges) > p.motion_lag:
             self._ranges.pop(0)
-        self._history = np.maximum(self._history - 1.0 / p.motion_memory, 0.0)
+        self._history -= 1.0 / p.motion_memory
+        np.maximum(self._history, 0.0, out=self._history)
         self._history[moved] = 1.0
 
-        flat_points = points.reshape(-1, 3)
-        still = (valid & (self._history == 0.0)).reshape(-1)
-        if self._subject is not None:
-            still &= ~ndimage.binary_dilation(self._subject, iterations=3).reshape(-1)
-        self._maybe_refit_planes(flat_points, still)
-        on_plane = self._on_planes(ranges, rays, sigma) & valid
+        if self._frames_since_planes is None or self._frames_since_planes >= p.plane_refresh:
+            still = valid & (self._history == 0.0)
+            if self._subject is not None:
+                still &= ~ndimage.binary_dilation(self._subject, iterations=3)
+            self._maybe_refit_planes(points.reshape(-1, 3), still.reshape(-1))
+        else:
+            self._frames_since_planes += 1
+        on_plane = self._on_planes(points, sigma) & valid
         candidates = valid & ~on_plane
+        ranges = far
 
         # Depth jumps split regions; a jump is more than the noise and more than a slanted
         # surface's step between neighbouring pixels (4 pixel footprints).
-        footprint = ranges / max(shape) * 2.0
+        footprint = np.where(valid, depth, 0.0) / max(shape) * 2.0
         jump = np.maximum(p.noise_sigmas * sigma * 2.0, 4.0 * footprint)
         finite = np.where(valid, ranges, np.nan)
         edge = np.zeros(shape, dtype=bool)
@@ -290,10 +297,11 @@ class SubjectSegmenter:
         index = np.arange(1, n_regions + 1)
         if n_regions == 0:
             return self._nobody(valid, c)
-        sizes = ndimage.sum_labels(core, labels, index)
-        motion = ndimage.sum_labels(self._history, labels, index)
-        overlap = ndimage.sum_labels(self._subject, labels, index) if self._subject is not None \
-            else np.zeros(n_regions)
+        flat_labels = labels.reshape(-1)
+        sizes = np.bincount(flat_labels, minlength=n_regions + 1)[1:].astype(float)
+        motion = np.bincount(flat_labels, weights=self._history.reshape(-1), minlength=n_regions + 1)[1:]
+        overlap = (np.bincount(flat_labels, weights=self._subject.reshape(-1), minlength=n_regions + 1)[1:]
+                   if self._subject is not None else np.zeros(n_regions))
         # Evidence that a region moves: more moved pixels than its boundary can flicker.
         moving = (motion >= np.maximum(20.0, 0.02 * sizes)) & (sizes >= 20)
         kept = overlap >= 0.3 * sizes
@@ -310,8 +318,9 @@ class SubjectSegmenter:
         low, high = self._region_box(points, labels, slices, primary)
         near = np.zeros(n_regions, dtype=bool)
         near[primary] = True
-        margin = int(np.ceil(p.attach_distance / max(float(np.nanmin(footprint[labels == primary + 1])) / 2.0, 1e-6)))
         rows, cols = slices[primary]
+        nearest_depth = float(np.min(ranges[slices[primary]][labels[slices[primary]] == primary + 1]))
+        margin = int(np.ceil(p.attach_distance / max(nearest_depth / max(shape), 1e-6)))
         window = (slice(max(rows.start - margin, 0), rows.stop + margin),
                   slice(max(cols.start - margin, 0), cols.stop + margin))
         primary_points = points[slices[primary]][labels[slices[primary]] == primary + 1]
@@ -399,14 +408,13 @@ class SubjectSegmenter:
         voxel = max(extent / 150.0, 0.01)
         down = np.asarray(cloud.voxel_down_sample(voxel).points)
         c = self._update_noise(None)
-        ranges, rays = _unit_rays(down)
-        sigma = c * ranges ** 2
+        sigma = c * down[:, 2] ** 2
         if self._frames_since_planes is None or self._frames_since_planes >= p.plane_refresh:
             self._planes, noise = self._fit_planes(down)
             self._update_noise(noise)
             self._frames_since_planes = 0
         self._frames_since_planes += 1
-        keep = ~self._on_planes(ranges, rays, sigma)
+        keep = ~self._on_planes(down, sigma)
         candidates = down[keep]
         if len(candidates) < 10:
             return Segmentation(np.zeros(len(points), bool), STATUS_NOBODY, int(valid.sum()))
