@@ -78,6 +78,35 @@ def simulate_and_run(name: str, source_args: list, scene: str, frames: int, work
     return record
 
 
+def segmentation_scores(bag: Path, gt_path: Path) -> dict:
+    """Per frame, against the simulator's per-pixel mask: the share of the measurable
+    subject pixels kept and the share of kept pixels that are background; ms per frame."""
+    from skel_extract_ros.bag import read_cloud_frames
+    from skel_extract_ros.core.segmentation import SubjectSegmenter
+
+    data = np.load(gt_path)
+    if 'subject_measured' not in data:
+        return {}
+    measured, subject = data['subject_measured'], data['subject_mask']
+    segmenter = SubjectSegmenter()
+    kept, background, times = [], [], []
+    for frame in read_cloud_frames(bag):
+        started = time.perf_counter()
+        result = segmenter(frame.points, frame.height, frame.width)
+        times.append(time.perf_counter() - started)
+        mask = result.mask.reshape(measured.shape[1:])
+        truth = measured[frame.index]
+        if truth.sum() and result.n_subject:   # frames where both the subject is and was found
+            kept.append(mask[truth].mean())
+            background.append((mask & ~subject[frame.index]).sum() / mask.sum())
+    found = [f for f in range(len(measured)) if measured[f].any()]
+    return {'seg_kept_min': float(np.min(kept)) if kept else float('nan'),
+            'seg_kept_median': float(np.median(kept)) if kept else float('nan'),
+            'seg_background_max': float(np.max(background)) if background else float('nan'),
+            'seg_frames_found': len(kept), 'seg_frames_with_subject': len(found),
+            'seg_ms_median': 1000 * float(np.median(times)), 'seg_ms_p95': 1000 * float(np.percentile(times, 95))}
+
+
 def _num(value) -> float:
     return float(value) if value is not None else float('nan')
 
@@ -88,6 +117,7 @@ def score(name: str, scene: str, work: Path) -> dict:
     gt = GroundTruth.load(bag / 'gt.npz')
     row = {'subject': name, 'scene': scene, 'error': record['error'], 'wall_s': record['wall_s'],
            'true_joints': int(gt.joints.shape[1])}
+    row.update(segmentation_scores(bag, bag / 'gt.npz'))
     timing = TIME_LINE.search(record['stdout'])
     if timing:
         keys = ('segmentation_s', 'preprocess_s', 'rest_pose_s', 'registration_s', 'registration_ms_per_frame',
@@ -119,6 +149,18 @@ def _fmt(value, digits=2, scale=1.0) -> str:
     if isinstance(value, (int, np.integer)):
         return str(int(value))
     return f'{value * scale:.{digits}f}'
+
+
+def segmentation_table(rows: list) -> str:
+    lines = ['| subject | scene | frames with the subject found / in view | subject kept: min / median (%) | '
+             'background in the kept, worst frame (%) | ms per frame: median / p95 |', '|' + '---|' * 6]
+    for r in rows:
+        if 'seg_ms_median' not in r:
+            continue
+        lines.append(f'| {r["subject"]} | {r["scene"]} | {r["seg_frames_found"]} / {r["seg_frames_with_subject"]} | '
+                     f'{_fmt(r["seg_kept_min"], 1, 100)} / {_fmt(r["seg_kept_median"], 1, 100)} | '
+                     f'{_fmt(r["seg_background_max"], 2, 100)} | {_fmt(r["seg_ms_median"], 1)} / {_fmt(r["seg_ms_p95"], 1)} |')
+    return '\n'.join(lines)
 
 
 def table(rows: list) -> str:
@@ -171,6 +213,8 @@ def main() -> int:
             except (EvaluationError, FileNotFoundError) as error:
                 print(f'{name} {scene}: cannot score: {error}', file=sys.stderr)
     print(table(rows))
+    print()
+    print(segmentation_table(rows))
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1, default=float))
     return 0

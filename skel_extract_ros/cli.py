@@ -95,18 +95,32 @@ def _cmd_evaluate(args) -> int:
         return 0
     if 'joints' in result:
         j = result['joints']
+        articulated = (f'{j["articulated_recall"]:.2f} of {j["n_articulated"]} that bend >= 25 deg'
+                       if j['n_articulated'] else 'n/a (no joint bends 25 deg)')
         print(f'joints: mean_error_m {j["mean_error_m"]:.4f}  normalized_error_m '
               f'{j["normalized_error_m"]:.4f}  recall {j["recall"]:.2f} '
               f'({j["n_matched"]}/{j["n_ground_truth"]} matched, {j["n_predicted"]} predicted, '
               f'{j["n_frames"]} frames, threshold {j["threshold_m"]:.3f} m)')
+        print(f'        precision {j["precision"]:.2f}  articulated recall {articulated}  '
+              f'motion skill {j["motion_skill"]:.2f}  non-finite {100 * j["nonfinite_fraction"]:.1f} %')
+        if j['missed_articulated']:
+            print(f'        articulated joints not found: {", ".join(j["missed_articulated"])}')
         for row in j['per_joint']:
+            bends = ' (bends)' if row.get('articulated') else ''
             print(f'  {row["ground_truth"]:>14s} <- {row["predicted"]:<10s} '
-                  f'{row["error_m"]:.4f} m (normalized {row["normalized_error_m"]:.4f} m)')
+                  f'{row["error_m"]:.4f} m (normalized {row["normalized_error_m"]:.4f} m){bends}')
     if 'registration' in result:
         r = result['registration']
         drift = '  '.join(f'@{k} {v:.4f}' for k, v in r['drift_m'].items())
         print(f'registration: mean_error_m {r["mean_error_m"]:.4f}  p95_error_m {r["p95_error_m"]:.4f}  '
-              f'drift {drift or "-"}  ({r["n_points"]} points, {r["n_frames"]} frames)')
+              f'worst frame {r["worst_frame_error_m"]:.4f} (p95 {r["worst_frame_p95_m"]:.4f})  '
+              f'drift {drift or "-"}  coverage {r["coverage"]:.2f}  non-finite '
+              f'{100 * r["nonfinite_fraction"]:.1f} %  ({r["n_points"]} points, {r["n_frames"]} frames'
+              + (f', scored from frame {r["n_frames_before_start"]}' if r['n_frames_before_start'] else '') + ')')
+        parts = sorted(r['per_part'].items(), key=lambda kv: -kv[1]['mean_error_m'])
+        if parts:
+            print('  worst parts: ' + ', '.join(f'{name} {v["mean_error_m"]:.3f} (worst frame '
+                                                f'{v["worst_frame_error_m"]:.3f})' for name, v in parts[:4]))
     return 0
 
 

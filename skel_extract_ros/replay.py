@@ -267,8 +267,11 @@ def replay(input_path, out, rate: float = 1.0, topic: str | None = None, params_
             if progress:
                 progress(index + 1, n_frames)
         recorder.wait_for(lambda: previous in received.filtered_at, frame_timeout, alive)
-        # the last registered frame must be in before the window is closed by hand
-        recorder.wait_for(lambda: previous in received.registered_at, 5.0, alive)
+        # the last registered frame must be in before the window is closed by hand; once a
+        # rest pose exists every frame is registered unless it fails (then nothing comes),
+        # and a busy machine can take seconds per frame
+        recorder.wait_for(lambda: previous in received.registered_at,
+                          frame_timeout if received.rest is not None else 5.0, alive)
         streamed = time.perf_counter() - started
         if not received.registered:
             raise ReplayError('no cloud was registered (no rest pose: is the subject in view? '

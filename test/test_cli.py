@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import run_cli as run
+from conftest import check_sample_scores, run_cli as run
 
 
 def test_simulate_info_evaluate(tmp_path):
@@ -59,40 +59,39 @@ def test_existing_output_is_not_overwritten(tmp_path):
 
 
 def test_run_on_the_sample_bag_end_to_end(sample_run, sample_bag):
-    """The whole pipeline on the bundled bag, scored by the evaluation metric.
-
-    The bounds guard against regressions at today's measured level (registration 2.1 cm;
-    joints 7.9 cm mean, 2.1 cm normalised, recall 0.67); the issue's accuracy targets are
-    tracked by the benchmark, not here.
-    """
+    """The whole pipeline on the bundled bag (real motion in a room, depth images), scored
+    by the evaluation metric (see conftest.check_sample_scores for the measured values)."""
     done, out = sample_run
     assert done.returncode == 0, done.stderr
     assert 'ms/frame' in done.stdout and 'joints' in done.stdout
+    assert 'subject found in 59 of 60 frames' in done.stdout and 'removed as background' in done.stdout
     assert 'register' in done.stderr  # progress
     data = np.load(out / 'registered.npz')
     gt = np.load(sample_bag / 'gt.npz')
     assert data['points'].shape == (60, 2000, 3)
     np.testing.assert_allclose(data['stamps'], gt['stamps'])
     assert str(data['frame_id']) == 'camera_depth_optical_frame'
+    # frame 0: nobody has moved yet, so no rest pose; from frame 1 on every frame is registered
+    assert list(data['status']).count('ok') == 59 and data['status'][0] == 'empty'
+    assert np.isfinite(data['points'][1:]).all() and np.isnan(data['points'][0]).all()
+    assert (data['background_fraction'][1:] > 0.9).all() and (data['subject_points'][1:] > 2500).all()
     skeleton = json.loads((out / 'skeleton.json').read_text())
     assert skeleton['frame_id'] == 'camera_depth_optical_frame'
     n_joints = len(skeleton['joint_names'])
     assert len(skeleton['parents']) == n_joints == len(skeleton['rest_positions'])
     assert skeleton['parents'].count(-1) == 1
-    assert len(skeleton['frames']) == 60
-    assert skeleton['frames'][5]['stamp'] == pytest.approx(float(gt['stamps'][5]))
+    assert len(skeleton['frames']) == 59
+    assert skeleton['frames'][5]['stamp'] == pytest.approx(float(gt['stamps'][6]))
+    assert np.isfinite([f['positions'] for f in skeleton['frames']]).all()
     assert (out / 'skeleton.png').stat().st_size > 10_000
     done = run('evaluate', '--gt', sample_bag / 'gt.npz', '--registered', out / 'registered.npz',
                '--pred', out / 'skeleton.json', '--json')
-    report = json.loads(done.stdout)
-    assert report['registration']['mean_error_m'] < 0.03, report['registration']
-    joints = report['joints']
-    # measured 0.072 m (repeatable run to run); the paper's surface anchors give 0.083 m
-    assert joints['recall'] >= 0.5 and joints['mean_error_m'] < 0.08 and joints['normalized_error_m'] < 0.04, joints
+    check_sample_scores(json.loads(done.stdout))
 
 
 def test_run_says_plainly_when_nothing_moves(tmp_path):
-    """A rigid subject: registration works, but no bones can be separated."""
+    """A still subject: nobody is found (nothing moved); with the segmentation off it is
+    registered, but no bones can be separated. Each says so in one line."""
     from skel_extract_ros.bag import write_cloud_bag
     from skel_extract_ros.sim import generate_sequence
     seq = generate_sequence('fish', 1, seed=3, progress=False)
@@ -100,8 +99,13 @@ def test_run_says_plainly_when_nothing_moves(tmp_path):
                           1_700_000_000 * 10**9 + np.arange(12) * 33_333_333, 'camera_depth_optical_frame')
     done = run('run', bag, '--out', tmp_path / 'out')
     assert done.returncode == 2
+    assert 'found in 0 of 12 frames' in done.stderr.strip().splitlines()[-1]
+    params = tmp_path / 'p.yaml'
+    params.write_text('registration_node:\n  ros__parameters:\n    segmentation:\n      enabled: false\n')
+    done = run('run', bag, '--out', tmp_path / 'out2', '--params', params)
+    assert done.returncode == 2
     assert 'too small to separate any bones' in done.stderr.strip().splitlines()[-1]
-    assert (tmp_path / 'out' / 'registered.npz').is_file()  # the registration is kept
+    assert (tmp_path / 'out2' / 'registered.npz').is_file()  # the registration is kept
 
 
 def test_run_errors(tmp_path, sample_bag):

@@ -121,3 +121,108 @@ def test_malformed_inputs_are_clear_errors(tmp_path):
     np.savez(tmp_path / 'gt.npz', stamps=np.zeros(2))
     with pytest.raises(EvaluationError, match='lacks joints'):
         GroundTruth.load(tmp_path / 'gt.npz')
+
+
+# -- the loopholes an audit found, each closed ------------------------------------------
+def test_articulated_recall_counts_only_joints_that_bend(tmp_path, gt_pair):
+    gt = gt_pair[0]
+    report = evaluate(tmp_path, gt, gt.joints)
+    assert report.articulated_recall == 1.0 and report.n_articulated >= 10
+    assert report.precision == 1.0 and report.motion_skill == pytest.approx(1.0)
+    # predicting only the articulated joints: full articulated recall, partial recall
+    spans = np.array([row['span_deg'] or 0.0 for row in report.per_joint])
+    articulated = [g for g, row in enumerate(report.per_joint) if row['articulated']]
+    only = evaluate(tmp_path, gt, gt.joints[:, articulated])
+    assert only.articulated_recall == 1.0 and only.recall < 1.0
+    # a joint held rigid is not counted: give one bone its parent's rotation in every frame
+    import copy
+    rigid = copy.copy(gt)
+    rigid.bone_transforms = gt.bone_transforms.copy()
+    bone = int(gt.joint_bones[articulated[0]])
+    parent = int(gt.bone_parents[bone])
+    rigid.bone_transforms[:, bone, :3, :3] = gt.bone_transforms[:, parent, :3, :3]
+    held = evaluate(tmp_path, rigid, gt.joints)
+    assert held.n_articulated == report.n_articulated - 1
+    assert spans.max() > 25.0
+
+
+def test_many_joints_do_not_buy_recall_without_precision(tmp_path, gt_pair):
+    gt = gt_pair[0]
+    rng = np.random.default_rng(2)
+    points = gt.surface_points[:, rng.choice(gt.surface_points.shape[1], 2000, replace=False)]
+    report = evaluate(tmp_path, gt, points)
+    assert report.recall >= 0.9 and report.precision <= 0.01 and report.n_predicted == 2000
+    hundred = evaluate(tmp_path, gt, points[:, :100])
+    assert hundred.precision <= 0.15
+
+
+def test_nan_predictions_count_as_misses(tmp_path, gt_pair):
+    gt = gt_pair[0]
+    gone = gt.joints.copy()
+    gone[1:] = np.nan                          # joints after frame 0 missing
+    report = evaluate(tmp_path, gt, gone)
+    assert report.recall == 0.0 and report.nonfinite_fraction > 0.95
+    tenth = gt.joints.copy()
+    tenth[::10] = np.nan
+    report = evaluate(tmp_path, gt, tenth)
+    assert report.recall == 1.0 and report.nonfinite_fraction == pytest.approx(0.1)
+    assert report.mean_error_m > 0.01         # each missing frame costs
+    # the registration: NaN after its first frame is not a perfect score
+    chosen = np.random.default_rng(1).choice(gt.surface_points.shape[1], 1500, replace=False)
+    registered = gt.surface_points[:, chosen].copy()
+    registered[1:] = np.nan
+    result = evaluate_registration(registered, gt.stamps, gt)
+    assert result['mean_error_m'] >= 0.9 * gt.subject_scale_m and result['nonfinite_fraction'] > 0.95
+    # frames before the registration's start (waiting for the subject) are not scored
+    late = gt.surface_points[:, chosen].copy()
+    late[:5] = np.nan
+    result = evaluate_registration(late, gt.stamps, gt)
+    assert result['n_frames_before_start'] == 5 and result['mean_error_m'] < 1e-6
+
+
+def test_a_collapsed_registration_scores_its_distance_from_the_body(gt_pair):
+    gt = gt_pair[0]
+    centroid = gt.surface_points[0].mean(axis=0)
+    collapsed = np.repeat(centroid[None, None], 2000, axis=1).repeat(len(gt.stamps), axis=0)
+    result = evaluate_registration(collapsed, gt.stamps, gt)
+    # it was scored 4.8 cm before the tie was checked; now it pays its distance from the
+    # surface, and covers nothing of the body
+    assert result['mean_error_m'] >= 0.05 and result['coverage'] <= 0.01, result
+    chosen = np.random.default_rng(1).choice(gt.surface_points.shape[1], 2000, replace=False)
+    assert evaluate_registration(gt.surface_points[:, chosen], gt.stamps, gt)['coverage'] >= 0.7
+    # the rest pose that never moves is bad too
+    static = np.repeat(gt.surface_points[:1, chosen], len(gt.stamps), axis=0)
+    assert evaluate_registration(static, gt.stamps, gt)['mean_error_m'] > 0.03
+
+
+def test_a_static_skeleton_at_the_mean_has_no_motion_skill(tmp_path, gt_pair):
+    gt = gt_pair[0]
+    static = np.repeat(gt.joints.mean(axis=0, keepdims=True), len(gt.stamps), axis=0)
+    report = evaluate(tmp_path, gt, static)
+    assert report.motion_skill <= 0.05
+    jittered = evaluate(tmp_path, gt, gt.joints + np.random.default_rng(0).normal(scale=0.01, size=gt.joints.shape))
+    assert 0.05 < jittered.motion_skill < 1.0
+
+
+def test_per_part_registration_names_the_lost_limb(gt_pair):
+    gt = gt_pair[0]
+    chosen = np.random.default_rng(1).choice(gt.surface_points.shape[1], 2000, replace=False)
+    registered = gt.surface_points[:, chosen].copy()
+    bones = gt.surface_bone_ids[chosen]
+    lost = gt.bone_names.index('l_forearm')
+    registered[10:, bones == lost] += np.array([0.0, 0.0, 0.3])      # the forearm lost from frame 10
+    result = evaluate_registration(registered, gt.stamps, gt)
+    worst = max(result['per_part'], key=lambda name: result['per_part'][name]['mean_error_m'])
+    assert worst == 'l_forearm'
+    assert result['per_part']['l_forearm']['worst_frame_error_m'] == pytest.approx(0.3, abs=0.01)
+    assert result['per_part']['chest']['mean_error_m'] < 1e-6
+    assert result['worst_frame_error_m'] > result['per_frame_error_m'][5]
+
+
+def test_ground_truth_without_joints_scores_registration_only(tmp_path, gt_pair):
+    gt = gt_pair[0]
+    meshless = GroundTruth(gt.stamps, np.zeros((len(gt.stamps), 0, 3)), [], np.zeros(0), gt.surface_points, 1.8)
+    with pytest.raises(EvaluationError, match='no joints'):
+        evaluate(tmp_path, meshless, gt.joints)
+    chosen = np.arange(0, gt.surface_points.shape[1], 3)
+    assert evaluate_registration(gt.surface_points[:, chosen], gt.stamps, meshless)['mean_error_m'] < 1e-6
