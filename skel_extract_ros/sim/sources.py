@@ -76,7 +76,8 @@ def simulate_rig(directory, frames: int = 90, **render_options) -> SimulatedSequ
 
     body = rig_body(load_rig(directory), frames, seed=render_options.get('seed', 0))
     extra = {'source': np.array(str(directory)), 'seed': np.int64(render_options.get('seed', 0))}
-    return render_in_view(body, extra_ground_truth=extra, **render_options)
+    # rigs face +z: a camera on +x sees the flank, where the legs and neck bend
+    return render_in_view(body, facing=np.array([1.0, 0.0, 0.0]), extra_ground_truth=extra, **render_options)
 
 
 def simulate_mesh_sequence(path, frames: int = 90, start: int = 0, **render_options) -> SimulatedSequence:
