@@ -264,3 +264,10 @@ def test_joint_estimation_node_ignores_malformed_structures(ros):
     pub.publish(String(data='{not json'))
     ros.wait(lambda: any('malformed' in m for m in ros.warnings('joint_estimation_node')),
              what='a warning about the malformed structure')
+    # and it still works: frames and a valid structure after it give joints
+    joints = ros.listen('skeleton/joints', PoseArray, STREAM_QOS)
+    _publish_two_bone(ros, rest, registered)
+    structure = extract_structure(rest, registered, StructureParams(n_clusters=12))
+    document = structure_document(structure, T0, [T0 + i * DT for i in range(6)], 'camera_depth_optical_frame')
+    pub.publish(String(data=json.dumps(document)))
+    ros.wait(lambda: len(joints) == 6, what='joints after the malformed structure')

@@ -59,6 +59,24 @@ def test_joint_estimation_on_the_exact_two_bone_case():
     np.testing.assert_allclose(np.linalg.det(estimate.rotations), 1.0, atol=1e-9)
 
 
+def test_alg2_corrects_a_joint_that_step2_placed_wrong():
+    """Step 2 is already 0.3 mm off on the exact case, so a no-op Alg. 2 would pass the
+    test above. Here Step 2's joint starts 3.6 cm off (what a one-sided anchor does on a
+    real limb) while the motion says where it is: Alg. 2 must move it back (measured
+    1.4 mm); returning Step 2's joint unchanged fails by 36 mm."""
+    import dataclasses
+    rest, registered, labels, joint, joint_path = two_bone_sequence()
+    structure = extract_structure(rest, registered, StructureParams(n_clusters=12))
+    child = int(np.flatnonzero(structure.parents >= 0)[0])
+    joints = structure.joints.copy()
+    joints[child] += [0.03, 0.02, 0.0]
+    wrong = dataclasses.replace(structure, joints=joints)
+    estimate = JointEstimation().fit(rest, registered, list(registered), wrong)
+    fitted = estimate.joints[int(np.flatnonzero(estimate.parents >= 0)[0])]
+    assert np.linalg.norm(joints[child] - joint) > 0.03
+    assert np.linalg.norm(fitted - joint) < 0.003
+
+
 def test_simplex_least_squares_is_exact_and_feasible():
     rng = np.random.default_rng(0)
     A = rng.normal(size=(300, 6, 4))

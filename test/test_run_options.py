@@ -1,0 +1,63 @@
+"""`skel-extract run --frames` and `--params` when they succeed, and `replay` at a rate
+other than 0 (the pacing path), on a small simulated bag."""
+import json
+import os
+
+import numpy as np
+import pytest
+from rosbags.rosbag2 import Reader
+
+from conftest import run_cli
+from skel_extract_ros.bag import write_cloud_bag
+from skel_extract_ros.sim import generate_sequence
+
+
+@pytest.fixture(scope='module')
+def arm_bag(tmp_path_factory):
+    seq = generate_sequence('arm', 16, seed=2, progress=False)
+    bag = tmp_path_factory.mktemp('arm') / 'bag'
+    write_cloud_bag(bag, seq.clouds, seq.stamps_ns, seq.frame_id)
+    return bag, seq
+
+
+def test_run_frames_selects_exactly_those_frames(tmp_path, arm_bag):
+    bag, seq = arm_bag
+    done = run_cli('run', bag, '--out', tmp_path / 'out', '--frames', '2:14')
+    assert done.returncode == 0, done.stderr
+    data = np.load(tmp_path / 'out' / 'registered.npz')
+    np.testing.assert_allclose(data['stamps'], seq.stamps_ns[2:14] * 1e-9)
+    skeleton = json.loads((tmp_path / 'out' / 'skeleton.json').read_text())
+    stamps = [f['stamp'] for f in skeleton['frames']]
+    assert set(stamps) <= set(seq.stamps_ns[2:14] * 1e-9) and len(stamps) == (data['status'] == 'ok').sum()
+
+
+def test_run_params_take_effect(tmp_path, arm_bag):
+    bag, _ = arm_bag
+    params = tmp_path / 'p.yaml'
+    params.write_text('registration_node:\n  ros__parameters:\n    rest_pose:\n      n_points: 500\n'
+                      'accumulator_node:\n  ros__parameters:\n    n_clusters: 12\n')
+    done = run_cli('run', bag, '--out', tmp_path / 'out', '--params', params)
+    assert done.returncode == 0, done.stderr
+    data = np.load(tmp_path / 'out' / 'registered.npz')
+    assert data['points'].shape == (16, 500, 3) and data['rest_points'].shape == (500, 3)
+
+
+def test_replay_at_twice_the_bag_rate_records_every_frame(tmp_path, arm_bag):
+    bag, _ = arm_bag
+    previous = os.environ.get('ROS_DOMAIN_ID')
+    os.environ['ROS_DOMAIN_ID'] = str(100 + (os.getpid() + 70) % 100)
+    try:
+        done = run_cli('replay', bag, '--out', tmp_path / 'out', '--rate', '2')
+    finally:
+        if previous is None:
+            os.environ.pop('ROS_DOMAIN_ID')
+        else:
+            os.environ['ROS_DOMAIN_ID'] = previous
+    assert done.returncode == 0, done.stderr[-2000:]
+    with Reader(tmp_path / 'out' / 'output.mcap') as reader:
+        counts = {c.topic: c.msgcount for c in reader.connections}
+    # every cloud answered; from the rest pose (frame 1: the arm has moved) on, registered
+    assert counts['/filtered_points'] == 16 and counts['/registered_points'] == 15, counts
+    assert counts['/skeleton/joints'] == 15, counts
+    skeleton = json.loads((tmp_path / 'out' / 'skeleton.json').read_text())
+    assert len(skeleton['frames']) == 15
