@@ -172,12 +172,17 @@ class SubjectSegmenter:
         return max(self.noise_c if self.noise_c is not None else p.min_noise_c, p.min_noise_c)
 
     # -- planes --------------------------------------------------------------------------
-    def _fit_planes(self, points: np.ndarray) -> tuple:
+    def _fit_planes(self, points: np.ndarray, pixels: np.ndarray | None = None,
+                    shape: tuple | None = None) -> tuple:
         """Planes (normal, d) of `points` (K, 3) extending min_plane_extent both ways, and the
-        noise coefficient from the largest one's ray residuals (None if no plane)."""
+        noise coefficient from the largest one's ray residuals (None if no plane). With the
+        points' pixels (K, 2: row, column) in an image of `shape`, a plane must also reach
+        the image border: floors and walls run out of view, a still subject's flank (a
+        cow's side is a 2 x 1 m plane) lies inside it."""
         p = self.params
         planes, noise = [], None
         remaining = points
+        remaining_pixels = pixels
         for _ in range(p.max_planes):
             if len(remaining) < 500:
                 break
@@ -199,8 +204,16 @@ class SubjectSegmenter:
             _, _, axes = np.linalg.svd(centred[:: max(1, len(on) // 2000)], full_matrices=False)
             spread = np.ptp(centred @ axes[:2].T, axis=0)
             remaining = np.delete(remaining, inliers, axis=0)
+            if pixels is not None:
+                rows, cols = remaining_pixels[inliers, 0], remaining_pixels[inliers, 1]
+                remaining_pixels = np.delete(remaining_pixels, inliers, axis=0)
             if spread.min() < p.min_plane_extent:
                 continue
+            if pixels is not None:
+                margin = 2
+                if (rows.min() > margin and cols.min() > margin and rows.max() < shape[0] - 1 - margin
+                        and cols.max() < shape[1] - 1 - margin):
+                    continue
             planes.append((normal, d))
             if noise is None:
                 depth = on[:, 2]
@@ -216,15 +229,17 @@ class SubjectSegmenter:
             on |= np.abs(_plane_depth(points, normal, d) - points[..., 2]) < self.params.noise_sigmas * sigma
         return on
 
-    def _maybe_refit_planes(self, points: np.ndarray, still: np.ndarray) -> None:
-        """Refit the planes every plane_refresh frames on the points in `still` (K, 3)."""
+    def _maybe_refit_planes(self, points: np.ndarray, still: np.ndarray, shape: tuple) -> None:
+        """Refit the planes every plane_refresh frames on the pixels in `still` (H*W,) of
+        the organized `points` (H*W, 3)."""
         p = self.params
         if self._frames_since_planes is None or self._frames_since_planes >= p.plane_refresh:
-            sample = points[still]
-            if len(sample) > 20000:
+            chosen = np.flatnonzero(still)
+            if len(chosen) > 20000:
                 rng = np.random.default_rng(p.seed)
-                sample = sample[rng.choice(len(sample), 20000, replace=False)]
-            self._planes, noise = self._fit_planes(sample)
+                chosen = np.sort(rng.choice(chosen, 20000, replace=False))
+            pixels = np.stack(np.divmod(chosen, shape[1]), axis=1)
+            self._planes, noise = self._fit_planes(points[chosen], pixels, shape)
             self._update_noise(noise)
             self._frames_since_planes = 0
         self._frames_since_planes += 1
@@ -272,7 +287,7 @@ class SubjectSegmenter:
             still = valid & (self._history == 0.0)
             if self._subject is not None:
                 still &= ~ndimage.binary_dilation(self._subject, iterations=3)
-            self._maybe_refit_planes(points.reshape(-1, 3), still.reshape(-1))
+            self._maybe_refit_planes(points.reshape(-1, 3), still.reshape(-1), shape)
         else:
             self._frames_since_planes += 1
         on_plane = self._on_planes(points, sigma) & valid
@@ -310,12 +325,10 @@ class SubjectSegmenter:
             return self._nobody(valid, c)
         score = motion + 10.0 * overlap
         primary = int(np.argmax(np.where(chosen_from, score, -1.0)))
-        # 3-D boxes of the regions near the primary in the image (a cheap first cut), to
-        # join the parts of the subject that depth jumps split off (a forearm in front of
-        # the torso, a leg behind the other): within attach_distance in 3-D, and moving,
-        # already the subject or no larger than the subject (never a wall).
+        # Join the parts of the subject that depth jumps split off (a forearm in front of
+        # the torso, a leg in front of the body): regions near the primary in the image (a
+        # cheap first cut) whose points come within attach_distance of it in 3-D.
         slices = ndimage.find_objects(labels)
-        low, high = self._region_box(points, labels, slices, primary)
         near = np.zeros(n_regions, dtype=bool)
         near[primary] = True
         rows, cols = slices[primary]
@@ -323,34 +336,44 @@ class SubjectSegmenter:
         margin = int(np.ceil(p.attach_distance / max(nearest_depth / max(shape), 1e-6)))
         window = (slice(max(rows.start - margin, 0), rows.stop + margin),
                   slice(max(cols.start - margin, 0), cols.stop + margin))
-        primary_points = points[slices[primary]][labels[slices[primary]] == primary + 1]
-        tree = None
-        for label in np.unique(labels[window]):
-            region = int(label) - 1
-            if region < 0 or region == primary:
-                continue
-            # A few pixels are noise (a wrong depth here and there), not a body part.
-            if not chosen_from[region] and sizes[region] < max(20.0, 0.002 * sizes[primary]):
-                continue
-            # A moving part (a hand split off at a depth jump) may be a little farther; a
-            # moving region as large as the subject is someone else.
-            hand_sized = moving[region] and sizes[region] <= 0.25 * sizes[primary]
-            reach = p.attach_distance * (2.0 if hand_sized else 1.0)
-            region_low, region_high = self._region_box(points, labels, slices, region)
-            gap = np.maximum(np.maximum(region_low - high, low - region_high), 0.0)
-            if np.linalg.norm(gap) > reach:
-                continue
-            small = sizes[region] <= sizes[primary] and (region_high - region_low).max() <= (high - low).max()
-            if not (chosen_from[region] or small):
-                continue
-            # boxes overlap; the points themselves must come within attach_distance
-            if tree is None:
-                tree = cKDTree(primary_points[:: max(1, len(primary_points) // 3000)])
-            region_points = points[slices[region]][labels[slices[region]] == region + 1]
-            distance, _ = tree.query(region_points[:: max(1, len(region_points) // 500)],
-                                     distance_upper_bound=reach)
-            if np.isfinite(distance).any():
-                near[region] = True
+        def region_points(region: int) -> np.ndarray:
+            return points[slices[region]][labels[slices[region]] == region + 1]
+
+        # Grow from the primary: a region joins when it comes within reach of any region
+        # already joined (a hoof joins the leg that joined the body), a few passes at most.
+        candidates_nearby = [int(label) - 1 for label in np.unique(labels[window]) if label > 0]
+        joined_points = [region_points(primary)]
+        for _ in range(3):
+            tree = cKDTree(np.concatenate([pts[:: max(1, len(pts) // 1500)] for pts in joined_points]))
+            added = False
+            for region in candidates_nearby:
+                if near[region]:
+                    continue
+                # A few pixels are noise (a wrong depth here and there), not a body part.
+                if not chosen_from[region] and sizes[region] < max(20.0, 0.002 * sizes[primary]):
+                    continue
+                # A moving part (a hand split off at a depth jump) may be a little farther; a
+                # moving region as large as the subject is someone else.
+                hand_sized = moving[region] and sizes[region] <= 0.25 * sizes[primary]
+                reach = p.attach_distance * (2.0 if hand_sized else 1.0)
+                # A still region touching the moving subject is the rest of it (the body of
+                # a cow swinging a leg), unless it runs out of the image: room structure
+                # that is not a plane (a wall's edge, a doorway), never wholly in view.
+                rows, cols = slices[region]
+                leaves_view = rows.start == 0 or cols.start == 0 or rows.stop == shape[0] or cols.stop == shape[1]
+                if not chosen_from[region] and leaves_view:
+                    continue
+                region_low, region_high = self._region_box(points, labels, slices, region)
+                if (region_high < tree.mins - reach).any() or (region_low > tree.maxes + reach).any():
+                    continue   # boxes apart: no point can be within reach
+                mine = region_points(region)
+                distance, _ = tree.query(mine[:: max(1, len(mine) // 500)], distance_upper_bound=reach)
+                if np.isfinite(distance).any():
+                    near[region] = True
+                    joined_points.append(mine)
+                    added = True
+            if not added:
+                break
         # Moving regions apart from the subject, together a tenth of its size: another
         # person (reported, not followed).
         others = np.flatnonzero(moving & ~near)
