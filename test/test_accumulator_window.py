@@ -1,0 +1,125 @@
+"""Windows of the accumulator (sliding, stride, a failed window retried) and the joint
+node's buffer (overflow, frames arriving during Alg. 2), on real DDS in process."""
+import json
+
+import numpy as np
+import pytest
+from geometry_msgs.msg import PoseArray
+from rclpy.parameter import Parameter
+from std_msgs.msg import String
+
+from ros_harness import Harness, header, stamps_of
+from skel_extract_ros.core.structure import StructureParams, extract_structure
+from skel_extract_ros.nodes.accumulator_node import AccumulatorNode
+from skel_extract_ros.nodes.common import LATCHED_QOS, STREAM_QOS
+from skel_extract_ros.nodes.conversions import cloud_message, structure_document
+from skel_extract_ros.nodes.joint_estimation_node import JointEstimationNode
+from two_bone import two_bone_sequence
+from sensor_msgs.msg import PointCloud2
+
+T0 = 1_700_000_000_000_000_000
+DT = 33_333_333
+
+
+@pytest.fixture
+def ros():
+    harness = Harness()
+    yield harness
+    harness.close()
+
+
+def publish_rest(ros, rest):
+    pub = ros.publisher('rest_points', PointCloud2, LATCHED_QOS)
+    pub.publish(cloud_message(rest, header(T0), float64=True))
+    ros.wait_matched(pub)
+    return pub
+
+
+def publish_frames(ros, frames, start):
+    """Registered + filtered clouds of frames start, start + 1, ... as the registration node."""
+    publishers = [ros.publisher(t, PointCloud2, STREAM_QOS) for t in ('registered_points', 'filtered_points')]
+    for pub in publishers:
+        ros.wait_matched(pub)
+    for i, frame in enumerate(frames, start):
+        for pub in publishers:
+            pub.publish(cloud_message(frame, header(T0 + i * DT)))
+
+
+def window_of(document):
+    return [(s - T0) // DT for s in document['window_stamps_ns']]
+
+
+def test_sliding_windows_every_stride_frames(ros):
+    rest, registered, _, _, _ = two_bone_sequence(n_frames=18)
+    node = ros.add(AccumulatorNode, parameter_overrides=[
+        Parameter('window_size', value=10), Parameter('sliding', value=True),
+        Parameter('stride', value=4), Parameter('n_clusters', value=12)])
+    structures = ros.listen('skeleton/structure', String, LATCHED_QOS)
+    publish_rest(ros, rest)
+    publish_frames(ros, registered[:10], 0)
+    ros.wait(lambda: len(structures) == 1, what='the first window')
+    publish_frames(ros, registered[10:14], 10)
+    ros.wait(lambda: len(structures) == 2, what='the window after one stride')
+    publish_frames(ros, registered[14:18], 14)
+    ros.wait(lambda: len(structures) == 3, what='the window after two strides')
+    windows = [window_of(json.loads(m.data)) for m in structures]
+    assert windows == [list(range(0, 10)), list(range(4, 14)), list(range(8, 18))]
+    assert node.extractions == 3
+
+
+def test_a_window_without_motion_is_retried_on_the_next_window(ros):
+    rest, registered, _, _, _ = two_bone_sequence(n_frames=10)
+    ros.add(AccumulatorNode, parameter_overrides=[Parameter('window_size', value=10),
+                                                  Parameter('n_clusters', value=12)])
+    structures = ros.listen('skeleton/structure', String, LATCHED_QOS)
+    publish_rest(ros, rest)
+    still = np.repeat(rest[None], 10, axis=0)            # ten frames of a subject standing still
+    publish_frames(ros, still, 0)
+    ros.wait(lambda: any('no skeleton from 10 frames' in line and 'trying again' in line
+                         for line in ros.warnings('accumulator_node')), what='the failed window')
+    assert not structures
+    publish_frames(ros, registered, 10)                   # then it moves
+    ros.wait(lambda: len(structures) == 1, what='a structure from the next window')
+    assert window_of(json.loads(structures[0].data)) == list(range(10, 20))
+
+
+def structure_message(rest, registered, first):
+    structure = extract_structure(rest, registered, StructureParams(n_clusters=12))
+    stamps = [T0 + (first + i) * DT for i in range(len(registered))]
+    return String(data=json.dumps(structure_document(structure, T0, stamps, 'camera_depth_optical_frame')))
+
+
+def test_joint_node_buffer_overflow_keeps_the_newest_frames(ros):
+    rest, registered, _, joint, joint_path = two_bone_sequence(n_frames=14)
+    node = ros.add(JointEstimationNode, parameter_overrides=[Parameter('buffer_size', value=8)])
+    joints = ros.listen('skeleton/joints', PoseArray, STREAM_QOS)
+    publish_rest(ros, rest)
+    publish_frames(ros, registered, 0)
+    ros.wait(lambda: len(node.buffer) == 8 and min(node.buffer) == T0 + 6 * DT, what='the newest 8 frames kept')
+    # a structure over frames 0-11: only 6-11 are still buffered; joints come for those,
+    # then live joints for 12 and 13
+    pub = ros.publisher('skeleton/structure', String, LATCHED_QOS)
+    pub.publish(structure_message(rest, registered[:12], 0))
+    ros.wait(lambda: len(joints) == 8, what='joints for the buffered window frames and the newer ones')
+    assert stamps_of(joints) == [T0 + i * DT for i in range(6, 14)]
+    assert any('not in the buffer' in line for line in ros.warnings('joint_estimation_node'))
+
+
+def test_frames_arriving_during_alg2_are_caught_up(ros):
+    rest, registered, _, joint, joint_path = two_bone_sequence(n_frames=30)
+    node = ros.add(JointEstimationNode)
+    joints = ros.listen('skeleton/joints', PoseArray, STREAM_QOS)
+    publish_rest(ros, rest)
+    publish_frames(ros, registered[:12], 0)
+    ros.wait(lambda: len(node.buffer) == 12, what='the window buffered')
+    pub = ros.publisher('skeleton/structure', String, LATCHED_QOS)
+    pub.publish(structure_message(rest, registered[:12], 0))
+    ros.wait(lambda: node._busy, what='Alg. 2 running')
+    publish_frames(ros, registered[12:], 12)             # while Alg. 2 runs
+    ros.wait(lambda: len(joints) == 30, what='joints for every frame')
+    assert sorted(stamps_of(joints)) == [T0 + i * DT for i in range(30)]
+    # the caught-up frames are tracked: one of the two joints follows the true joint
+    by_stamp = {m.header.stamp.sec * 10**9 + m.header.stamp.nanosec: m for m in joints}
+    for i in range(12, 30):
+        positions = np.array([[p.position.x, p.position.y, p.position.z] for p in by_stamp[T0 + i * DT].poses])
+        assert np.linalg.norm(positions - joint_path[i], axis=1).min() < 3e-3
