@@ -96,7 +96,9 @@ def main() -> int:
         gt = GroundTruth.from_arrays(g)
         pipeline = SkeletonPipeline()
         started = time.perf_counter()
-        registered = pipeline.register(c.reshape(-1, 3) for c in seq.clouds)
+        # organized clouds, as a camera gives them: the subject segmentation (on by
+        # default) then finds the subject from the second frame on
+        registered = pipeline.register(seq.clouds)
         register_seconds = time.perf_counter() - started
         result = pipeline.extract(registered)
         stamps = g['stamps'][result.frames]

@@ -7,7 +7,7 @@ Subscribes  points            sensor_msgs/PointCloud2  sensor-data QoS (best eff
             depth/camera_info sensor_msgs/CameraInfo, with input:=depth_image: back-projected
                               into the same organized cloud
 Publishes   registered_points PointCloud2 (M points, fixed order, input header; ok frames only)
-            filtered_points   PointCloud2 (the preprocessed cloud, input header; every decodable cloud)
+            filtered_points   PointCloud2 (the subject, preprocessed, input header; every decodable cloud)
             rest_points       PointCloud2 (float64, transient local; the rest pose Q, header of its cloud)
 Services    ~/reset           std_srvs/Trigger: forget the rest pose, build a new one
             ~/reset_background std_srvs/Trigger: forget the learned scene (planes, motion
