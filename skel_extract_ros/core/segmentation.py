@@ -173,7 +173,8 @@ class SubjectSegmenter:
 
     # -- planes --------------------------------------------------------------------------
     def _fit_planes(self, points: np.ndarray, pixels: np.ndarray | None = None,
-                    shape: tuple | None = None) -> tuple:
+                    shape: tuple | None = None, max_planes: int | None = None,
+                    min_inliers: int | None = None) -> tuple:
         """Planes (normal, d) of `points` (K, 3) extending min_plane_extent both ways, and the
         noise coefficient from the largest one's ray residuals (None if no plane). With the
         points' pixels (K, 2: row, column) in an image of `shape`, a plane must also reach
@@ -183,7 +184,7 @@ class SubjectSegmenter:
         planes, noise = [], None
         remaining = points
         remaining_pixels = pixels
-        for _ in range(p.max_planes):
+        for _ in range(p.max_planes if max_planes is None else max_planes):
             if len(remaining) < 500:
                 break
             cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(remaining))
@@ -193,7 +194,7 @@ class SubjectSegmenter:
             o3d.utility.random.seed(p.seed + len(planes))
             model, inliers = cloud.segment_plane(max(threshold, 0.005), 3, 300)
             inliers = np.asarray(inliers)
-            if len(inliers) < 0.05 * len(points):
+            if len(inliers) < (0.05 * len(points) if min_inliers is None else min_inliers):
                 break
             normal, d = np.asarray(model[:3], float), float(model[3])
             scale = np.linalg.norm(normal)
@@ -239,7 +240,23 @@ class SubjectSegmenter:
                 rng = np.random.default_rng(p.seed)
                 chosen = np.sort(rng.choice(chosen, 20000, replace=False))
             pixels = np.stack(np.divmod(chosen, shape[1]), axis=1)
-            self._planes, noise = self._fit_planes(points[chosen], pixels, shape)
+            sample = points[chosen]
+            # Planes of a still camera do not change: keep those the still pixels still
+            # support and look for new ones only among the rest (a refit on a view partly
+            # hidden by the subject could tilt the floor and leave a strip of it "off plane").
+            kept, full = [], len(sample)
+            if self._planes:
+                sigma = max(self.noise_c or p.min_noise_c, p.min_noise_c) * sample[:, 2] ** 2
+                for plane in self._planes:
+                    saved, self._planes = self._planes, [plane]
+                    on = self._on_planes(sample, sigma)
+                    self._planes = saved
+                    if on.sum() >= 0.05 * len(sample):
+                        kept.append(plane)
+                        sample, pixels = sample[~on], pixels[~on]
+                        sigma = sigma[~on]
+            new, noise = self._fit_planes(sample, pixels, shape, p.max_planes - len(kept), int(0.05 * full))
+            self._planes = kept + new
             self._update_noise(noise)
             self._frames_since_planes = 0
         self._frames_since_planes += 1
