@@ -25,6 +25,30 @@ def run_cli(*args, timeout=900):
     return subprocess.run([CLI, *map(str, args)], capture_output=True, text=True, timeout=timeout)
 
 
+def run_cli_private_domain(offset, *args, timeout=900):
+    """run_cli for commands that start ROS nodes (replay), on a ROS domain of their own
+    (`offset` keeps two such tests of one process apart) so parallel runs never mix."""
+    import os
+    previous = os.environ.get('ROS_DOMAIN_ID')
+    os.environ['ROS_DOMAIN_ID'] = str(100 + (os.getpid() + offset) % 100)
+    try:
+        return run_cli(*args, timeout=timeout)
+    finally:
+        if previous is None:
+            os.environ.pop('ROS_DOMAIN_ID')
+        else:
+            os.environ['ROS_DOMAIN_ID'] = previous
+
+
+@pytest.fixture
+def ros():
+    """An in-process ROS graph on a private domain (test/ros_harness.py), closed after the test."""
+    from ros_harness import Harness
+    harness = Harness()
+    yield harness
+    harness.close()
+
+
 def check_sample_scores(report: dict) -> None:
     """The sample bag's scores (`skel-extract evaluate --json`), by `run` and by `replay`
     alike: bounds close to what is measured (repeatable run to run), so a regression shows.

@@ -14,6 +14,10 @@ from std_msgs.msg import Header
 
 from skel_extract_ros.pointcloud import encode_xyz
 
+# Stamps of the hand-made sequences: the first frame and the 30 Hz period, ns.
+T0 = 1_700_000_000_000_000_000
+DT = 33_333_333
+
 
 class Harness:
     def __init__(self):

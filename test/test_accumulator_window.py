@@ -8,7 +8,7 @@ from geometry_msgs.msg import PoseArray
 from rclpy.parameter import Parameter
 from std_msgs.msg import String
 
-from ros_harness import Harness, header, stamps_of
+from ros_harness import DT, T0, header, stamps_of
 from skel_extract_ros.core.structure import StructureParams, extract_structure
 from skel_extract_ros.nodes.accumulator_node import AccumulatorNode
 from skel_extract_ros.nodes.common import LATCHED_QOS, STREAM_QOS
@@ -16,17 +16,6 @@ from skel_extract_ros.nodes.conversions import cloud_message, structure_document
 from skel_extract_ros.nodes.joint_estimation_node import JointEstimationNode
 from two_bone import two_bone_sequence
 from sensor_msgs.msg import PointCloud2
-
-T0 = 1_700_000_000_000_000_000
-DT = 33_333_333
-
-
-@pytest.fixture
-def ros():
-    harness = Harness()
-    yield harness
-    harness.close()
-
 
 def publish_rest(ros, rest):
     pub = ros.publisher('rest_points', PointCloud2, LATCHED_QOS)

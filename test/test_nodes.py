@@ -10,7 +10,7 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker, MarkerArray
 
-from ros_harness import Harness, cloud, header, stamps_of
+from ros_harness import DT, T0, cloud, header, stamps_of
 from skel_extract_ros.core.structure import StructureParams, extract_structure
 from skel_extract_ros.nodes.accumulator_node import AccumulatorNode
 from skel_extract_ros.nodes.common import LATCHED_QOS, STREAM_QOS, ParameterError
@@ -22,17 +22,6 @@ from skel_extract_ros.sim import NoiseModel, generate_sequence
 from two_bone import two_bone_sequence
 
 from rclpy.parameter import Parameter
-
-T0 = 1_700_000_000_000_000_000
-DT = 33_333_333
-
-
-@pytest.fixture
-def ros():
-    harness = Harness()
-    yield harness
-    harness.close()
-
 
 @pytest.fixture(scope='module')
 def arm():

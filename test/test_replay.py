@@ -1,23 +1,14 @@
 """`skel-extract replay`: the three node processes over real DDS on the sample bag."""
 import json
-import os
 
 import numpy as np
 from rosbags.rosbag2 import Reader
 
-from conftest import check_sample_scores, run_cli
+from conftest import check_sample_scores, run_cli, run_cli_private_domain
 
 
 def test_replay_sample_bag_records_every_topic_and_matches_run(tmp_path, sample_bag, sample_run):
-    env_domain = os.environ.get('ROS_DOMAIN_ID')
-    os.environ['ROS_DOMAIN_ID'] = str(100 + (os.getpid() + 50) % 100)   # private graph
-    try:
-        done = run_cli('replay', sample_bag, '--out', tmp_path / 'out', '--rate', '0')
-    finally:
-        if env_domain is None:
-            os.environ.pop('ROS_DOMAIN_ID')
-        else:
-            os.environ['ROS_DOMAIN_ID'] = env_domain
+    done = run_cli_private_domain(50, 'replay', sample_bag, '--out', tmp_path / 'out', '--rate', '0')
     out = tmp_path / 'out'
     assert done.returncode == 0, done.stderr[-2000:]
     assert 'latency registration' in done.stdout

@@ -1,13 +1,12 @@
 """`skel-extract run --frames` and `--params` when they succeed, and `replay` at a rate
 other than 0 (the pacing path), on a small simulated bag."""
 import json
-import os
 
 import numpy as np
 import pytest
 from rosbags.rosbag2 import Reader
 
-from conftest import run_cli
+from conftest import run_cli, run_cli_private_domain
 from skel_extract_ros.bag import write_cloud_bag
 from skel_extract_ros.sim import generate_sequence
 
@@ -44,15 +43,7 @@ def test_run_params_take_effect(tmp_path, arm_bag):
 
 def test_replay_at_twice_the_bag_rate_records_every_frame(tmp_path, arm_bag):
     bag, _ = arm_bag
-    previous = os.environ.get('ROS_DOMAIN_ID')
-    os.environ['ROS_DOMAIN_ID'] = str(100 + (os.getpid() + 70) % 100)
-    try:
-        done = run_cli('replay', bag, '--out', tmp_path / 'out', '--rate', '2')
-    finally:
-        if previous is None:
-            os.environ.pop('ROS_DOMAIN_ID')
-        else:
-            os.environ['ROS_DOMAIN_ID'] = previous
+    done = run_cli_private_domain(70, 'replay', bag, '--out', tmp_path / 'out', '--rate', '2')
     assert done.returncode == 0, done.stderr[-2000:]
     with Reader(tmp_path / 'out' / 'output.mcap') as reader:
         counts = {c.topic: c.msgcount for c in reader.connections}
