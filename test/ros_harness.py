@@ -8,7 +8,7 @@ import numpy as np
 import rclpy
 from rcl_interfaces.msg import Log
 from rclpy.executors import MultiThreadedExecutor
-from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.qos import QoSProfile
 from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Header
 

@@ -3,7 +3,6 @@ node's buffer (overflow, frames arriving during Alg. 2), on real DDS in process.
 import json
 
 import numpy as np
-import pytest
 from geometry_msgs.msg import PoseArray
 from rclpy.parameter import Parameter
 from std_msgs.msg import String

@@ -1,9 +1,5 @@
 """The `skel-extract` command line, run as a user runs it."""
 import json
-import shutil
-import subprocess
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest

@@ -5,7 +5,7 @@ from rclpy.qos import QoSProfile
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_srvs.srv import Trigger
 
-from ros_harness import DT, T0, cloud, header, stamps_of
+from ros_harness import cloud, header, stamps_of
 from skel_extract_ros.core.segmentation import SegmentationParams
 from skel_extract_ros.core.sequence import SequenceRegistration
 from skel_extract_ros.depth_image import encode_depth

@@ -83,7 +83,7 @@ class SegmentationParams:
                   'min_subject_points': self.min_subject_points >= 1}
         bad = [name for name, ok in checks.items() if not ok]
         if bad:
-            raise ValueError(f'segmentation parameter(s) out of range: '
+            raise ValueError('segmentation parameter(s) out of range: '
                              + ', '.join(f'{n}={getattr(self, n)}' for n in bad))
 
 
