@@ -56,6 +56,10 @@ class Harness:
                 raise AssertionError(f'timed out after {timeout:.0f} s waiting for {what}')
             time.sleep(0.01)
 
+    def spinning(self) -> bool:
+        """Whether the executor still runs: a callback that raises stops it (and every node)."""
+        return self._thread.is_alive()
+
     def wait_matched(self, publisher, timeout=30.0):
         self.wait(lambda: publisher.get_subscription_count() >= 1, timeout, 'a subscription to match')
 

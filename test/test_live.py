@@ -22,19 +22,21 @@ def learned():
 
 @pytest.mark.parametrize('sweeps', [0, 2])
 def test_live_joints_follow_unseen_frames(learned, sweeps):
+    """Noise-free unseen frames: measured 0.98 mm (sweeps 0) / 1.04 mm (sweeps 2) at worst."""
     model, registered, joint_path, _ = learned
     tracker = LiveJointTracker(model, sweeps=sweeps)
     child = int(np.flatnonzero(model.parents >= 0)[0])
     unseen = np.arange(1, len(registered), 2)
     tracked = np.array([tracker.track(registered[f])[child] for f in unseen])
-    assert np.linalg.norm(tracked - joint_path[unseen], axis=1).max() < 2e-3
+    assert np.linalg.norm(tracked - joint_path[unseen], axis=1).max() < 1.4e-3
 
 
 def test_live_fit_matches_alg2_on_its_own_window(learned):
+    """On Alg. 2's own frames the live fit gives Alg. 2's joints: 0.23 mm apart at most (measured)."""
     model, registered, _, estimate = learned
     tracker = LiveJointTracker(model, sweeps=2)
     live = np.array([tracker.track(frame) for frame in registered[::2]])
-    np.testing.assert_allclose(live, estimate.joint_trajectories(), atol=2e-3)
+    np.testing.assert_allclose(live, estimate.joint_trajectories(), atol=3e-4)
     rotations, _ = tracker.fit(registered[0])
     np.testing.assert_allclose(np.linalg.det(rotations), 1.0, atol=1e-9)
 
@@ -47,11 +49,16 @@ def test_live_rejects_a_frame_of_another_size(learned):
         LiveJointTracker(model, sweeps=-1)
 
 
-def test_sweeps_enforce_the_joint_constraint_on_noisy_frames(learned):
-    """Noise-free, the per-bone rigid fits are already exact, so broken sweeps would pass
-    the tests above. On frames with 1 cm noise the independent rigid fits tear the joint
-    apart (parent and child put it 1.6 mm apart, measured); the sweeps' joint term
-    (Eq. 13-15) closes it (0.1 mm measured) while the joints stay within 2 mm."""
+@pytest.mark.parametrize('sweeps, max_gap, max_error', [(1, 0.086e-3, 3.4e-3), (2, 0.117e-3, 3.2e-3)])
+def test_sweeps_enforce_the_joint_constraint_on_noisy_frames(learned, sweeps, max_gap, max_error):
+    """Noise-free, the per-bone rigid fits are already exact, so broken sweeps pass the tests
+    above. On the unseen frames with 1 cm noise the independent rigid fits (sweeps = 0) tear
+    the joint apart: parent and child carry it to places 1.67 mm apart on average (measured).
+    The sweeps' joint term (Eq. 13-15) closes the gap: measured 0.066 mm (1 sweep), 0.090 mm
+    (2 sweeps); bounds 1.3 x, so sweeps that skip the joint term, or do nothing, fail by
+    more than 10 x. The reported joint (the mean of both carriages) is not more accurate
+    for it (measured worst 2.62 / 2.45 mm with sweeps, 1.97 mm without): the error bound
+    (1.3 x measured) only checks that closing the gap does not move the joint away."""
     model, registered, joint_path, _ = learned
     child = int(np.flatnonzero(model.parents >= 0)[0])
     parent = int(model.parents[child])
@@ -70,6 +77,7 @@ def test_sweeps_enforce_the_joint_constraint_on_noisy_frames(learned):
         return np.mean(gaps), np.linalg.norm(np.array(tracked) - joint_path[unseen], axis=1).max()
 
     rigid_gap, _ = mismatch(0)
-    swept_gap, swept_error = mismatch(2)
-    assert rigid_gap > 1e-3 and swept_gap < 0.2 * rigid_gap, (rigid_gap, swept_gap)
-    assert swept_error < 4e-3
+    swept_gap, swept_error = mismatch(sweeps)
+    assert rigid_gap > 1.3e-3, rigid_gap
+    assert swept_gap < max_gap and swept_gap < 0.07 * rigid_gap, (rigid_gap, swept_gap)
+    assert swept_error < max_error, swept_error

@@ -6,7 +6,7 @@ import pytest
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from skel_extract_ros.core.joints import JointEstimation, simplex_least_squares
+from skel_extract_ros.core.joints import JointEstimation, JointParams, simplex_least_squares
 from skel_extract_ros.core.rigid import fit_rigid_segments
 from skel_extract_ros.core.structure import (StructureError, StructureParams, _neighbour_graph, _residuals,
                                              boundary_centroids, extract_structure, medial_anchors,
@@ -46,13 +46,15 @@ def test_structure_finds_two_bones_and_the_joint():
 
 
 def test_joint_estimation_on_the_exact_two_bone_case():
+    """Measured: rest joint 0.76 mm off, trajectory 0.78 mm at worst (Step 2: 0.31 mm; the
+    joint drifts towards its anchor, 4.1 mm off, as alpha grows). Bounds 1.3 x."""
     rest, registered, labels, joint, joint_path = two_bone_sequence()
     structure = extract_structure(rest, registered, StructureParams(n_clusters=12))
     estimate = JointEstimation().fit(rest, registered, list(registered), structure)
     child = int(np.flatnonzero(estimate.parents >= 0)[0])
     assert np.linalg.norm(estimate.joints[child] - joint) < 1e-3
     trajectory = estimate.joint_trajectories()[:, child]
-    assert np.linalg.norm(trajectory - joint_path, axis=1).max() < 2e-3
+    assert np.linalg.norm(trajectory - joint_path, axis=1).max() < 1e-3
     # the weight constraints (12b)
     W = estimate.dense_weights()
     assert (W >= 0).all() and np.allclose(W.sum(axis=1), 1.0) and ((W > 0).sum(axis=1) <= 4).all()
@@ -60,21 +62,35 @@ def test_joint_estimation_on_the_exact_two_bone_case():
 
 
 def test_alg2_corrects_a_joint_that_step2_placed_wrong():
-    """Step 2 is already 0.3 mm off on the exact case, so a no-op Alg. 2 would pass the
-    test above. Here Step 2's joint starts 3.6 cm off (what a one-sided anchor does on a
-    real limb) while the motion says where it is: Alg. 2 must move it back (measured
-    1.4 mm); returning Step 2's joint unchanged fails by 36 mm."""
-    import dataclasses
-    rest, registered, labels, joint, joint_path = two_bone_sequence()
+    """Step 2 is already 0.3 mm off on the exact case, so a no-op Alg. 2 passes the test
+    above. Here the registration slipped: the child bone's registered points sit 1.4 cm off
+    ([1, 1, 0] cm) in every frame, while the observed points (the GMM term of Alg. 2) are
+    the true surface. Step 2 sees only the registration and puts the joint 12.5 mm off the
+    true path on average (measured); Alg. 2 must follow the observations back to it
+    (measured 0.62 mm mean, 0.70 mm worst frame; bounds 1.3 x). A no-op Alg. 2 (no EM
+    iteration: Step 2's transforms and joints returned, as max_iterations = 0 does) fails
+    by 12.5 mm; re-solving the joints from Step 2's transforms gives Step 2's joint again;
+    an Alg. 2 fitted to the registration instead of the observations stays 9.9 mm off."""
+    rest, truth, labels, joint, joint_path = two_bone_sequence()
+    registered = truth.copy()
+    registered[:, labels == 1] += [0.01, 0.01, 0.0]
     structure = extract_structure(rest, registered, StructureParams(n_clusters=12))
-    child = int(np.flatnonzero(structure.parents >= 0)[0])
-    joints = structure.joints.copy()
-    joints[child] += [0.03, 0.02, 0.0]
-    wrong = dataclasses.replace(structure, joints=joints)
-    estimate = JointEstimation().fit(rest, registered, list(registered), wrong)
-    fitted = estimate.joints[int(np.flatnonzero(estimate.parents >= 0)[0])]
-    assert np.linalg.norm(joints[child] - joint) > 0.03
-    assert np.linalg.norm(fitted - joint) < 0.003
+    assert structure.n_bones == 2
+
+    def errors(estimate):
+        child = int(np.flatnonzero(estimate.parents >= 0)[0])
+        path_error = np.linalg.norm(estimate.joint_trajectories()[:, child] - joint_path, axis=1)
+        return path_error.mean(), path_error.max(), np.linalg.norm(estimate.joints[child] - joint)
+
+    step2_mean, _, step2_rest = errors(structure)
+    assert step2_mean > 0.010 and step2_rest > 0.005, (step2_mean, step2_rest)
+    step3_mean, step3_max, step3_rest = errors(JointEstimation().fit(rest, registered, list(truth), structure))
+    assert step3_mean < 0.0008 and step3_max < 0.0009 and step3_rest < 0.0009, (step3_mean, step3_max, step3_rest)
+    assert step3_mean < 0.1 * step2_mean
+    # the same bound on Alg. 2 as a no-op fails: it returns Step 2's joints
+    noop_mean, _, _ = errors(JointEstimation(JointParams(max_iterations=0)).fit(rest, registered, list(truth),
+                                                                               structure))
+    assert noop_mean == pytest.approx(step2_mean) and noop_mean > 0.0008
 
 
 def test_simplex_least_squares_is_exact_and_feasible():

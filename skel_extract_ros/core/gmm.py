@@ -83,12 +83,14 @@ def gmm_posteriors(observed: np.ndarray, centroids: np.ndarray, sigma2: float, o
     gauss = np.where(found, np.exp(-np.where(found, d2, 0.0) / (2.0 * sigma2)), 0.0)
     row_sum = gauss.sum(axis=1)
     c = (2.0 * np.pi * sigma2) ** 1.5 * omega * M / ((1.0 - omega) * N)
-    posteriors = gauss / (row_sum + c)[:, None]
+    # with omega = 0 an observation out of every centroid's reach has 0 / 0: it has no mass
+    denominator = row_sum + c
+    posteriors = gauss / np.where(denominator > 0, denominator, 1.0)[:, None]
     flat = np.where(found, idx, M).ravel()
     P1 = np.bincount(flat, weights=posteriors.ravel(), minlength=M + 1)[:M]
     Px = np.stack([np.bincount(flat, weights=(posteriors * observed[:, axis:axis + 1]).ravel(),
                                minlength=M + 1)[:M] for axis in range(3)], axis=1)
     likelihood = (1.0 - omega) / M * (2.0 * np.pi * sigma2) ** -1.5 * row_sum + omega / N
-    nll = float(-np.sum(np.log(likelihood)))
+    nll = float(-np.sum(np.log(likelihood[likelihood > 0])))
     weighted_sq = float(np.sum(posteriors.sum(axis=1) * np.sum(observed ** 2, axis=1)))
     return GMMStatistics(P1, Px, float(P1.sum()), nll, weighted_sq)

@@ -71,6 +71,13 @@ def parse_structure(text: str) -> dict:
     Raises ValueError with the reason."""
     try:
         document = json.loads(text)
+        if not isinstance(document, dict):
+            raise TypeError(f'a JSON object is expected, not {type(document).__name__}')
+        for key in ('rest_stamp_ns', 'window_stamps_ns', 'frame_id'):
+            if key not in document:
+                raise KeyError(key)
+        document['rest_stamp_ns'] = int(document['rest_stamp_ns'])
+        document['window_stamps_ns'] = [int(stamp) for stamp in document['window_stamps_ns']]
         if document.get('version') != STRUCTURE_VERSION:
             raise ValueError(f'unsupported structure version {document.get("version")!r}')
         document['parents'] = np.asarray(document['parents'], dtype=np.int64)
@@ -83,7 +90,7 @@ def parse_structure(text: str) -> dict:
         if len(document['labels']) and (document['labels'].min() < 0 or document['labels'].max() >= B):
             raise ValueError('labels out of range')
         return document
-    except (KeyError, TypeError, json.JSONDecodeError) as error:
+    except (KeyError, TypeError, ValueError) as error:  # JSONDecodeError is a ValueError
         raise ValueError(f'malformed skeleton/structure message: {error}') from None
 
 
