@@ -201,12 +201,15 @@ def _cmd_run(args) -> int:
     background = np.array([s.background_fraction for s in segments])
     np.savez_compressed(out / 'registered.npz', points=registered, stamps=stamps,
                         status=registration.statuses_, sigma2=registration.sigma2_,
+                        recaptured=registration.recaptured_,
                         rest_points=registration.rest_pose_.points.astype(np.float32),
                         frame_id=np.array(frame_id), subject_points=subject_points,
                         background_fraction=background,
                         segmentation=np.array([s.status for s in segments]))
+    recaptures = int(registration.recaptured_.sum())
     print(f'registered {len(registered)} frames of {registered.shape[1]} points -> {out / "registered.npz"}'
-          f'  ({", ".join(f"{n} {status}" for status, n in sorted(counts.items()))})')
+          f'  ({", ".join(f"{n} {status}" for status, n in sorted(counts.items()))}'
+          f'{f"; {recaptures} lost parts recaptured" if recaptures else ""})')
     with_subject = subject_points > 0
     several = max((s.n_moving_regions for s in segments), default=0)
     print(f'subject found in {with_subject.sum()} of {len(segments)} frames'

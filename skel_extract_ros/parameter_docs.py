@@ -11,7 +11,18 @@ _ANY = (None, None)
 
 _REGISTRATION = {
     'omega': ('weight of the uniform outlier component of the GMM (Eq. 1, 3), in [0, 1)', (0.0, 0.999)),
-    'beta_smooth': ('weight of E_smooth, the deformation graph smoothness term (Eq. 4)', (0.0, INF)),
+    'smoothness': ('deformation graph smoothness: robust (default; weight relative to sigma2, Geman-McClure '
+                   'loss per edge, so a limb can leave the body it touched in the first frame) or paper '
+                   '(Eq. 4 as written, fixed beta_smooth)', _ANY),
+    'beta_smooth': ('weight of E_smooth with smoothness: paper (Eq. 4, Table 1), 1/m^2', (0.0, INF)),
+    'beta_smooth_relative': ('with smoothness: robust, E_smooth is weighted this / sigma2 (the units of '
+                             'the data term)', (0.0, INF)),
+    'edge_strain_scale': ('with smoothness: robust, an edge residual this fraction of the edge length '
+                          '(about the relative rotation of its nodes, rad) weighs a quarter', (1e-6, 100.0)),
+    'visibility': ('model points hidden behind the observed surface take no observations in that frame '
+                   '(measured: mixed on real motion, off by default)', _ANY),
+    'recapture': ('after EM, move a part left without data rigidly onto the observations nothing explains '
+                  'and re-run EM (fast limbs)', _ANY),
     'beta_small': ('weight of E_small, the small-motion term between frames (Eq. 4)', (0.0, INF)),
     'initial_sigma2': ('GMM variance at the start of every frame, m^2 (Sec. 7)', (1e-12, INF)),
     'max_iterations': ('EM iterations per frame at most (Alg. 1)', (1, 1000)),

@@ -49,48 +49,62 @@ def test_kabsch_special_case_recovers_a_known_rotation():
     np.testing.assert_allclose(rotations_from_h(H)[0], true, atol=1e-10)
 
 
-def _m_step_objective(reg, estep, sigma2, R, T, R0, T0):
+def _m_step_objective(reg, estep, sigma2, R, T, R0, T0, stiffness):
+    """The M-step energy with edge weights `stiffness` (E,) held fixed (the IRLS
+    majoriser of the robust smoothness; beta_smooth for every edge with 'paper')."""
     p = reg.params
     targets = estep.targets()
     y = reg._contributions(R, T).sum(axis=1)
     return (0.5 / sigma2 * np.sum(estep.P1 * np.sum((targets - y) ** 2, axis=1))
-            + 0.5 * p.beta_smooth * reg.smooth_energy(R, T)
+            + 0.5 * np.sum(stiffness * reg.edge_residuals(R, T) ** 2)
             + 0.5 * p.beta_small * (np.sum((R - R0) ** 2) + np.sum((T - T0) ** 2)))
 
 
-@pytest.mark.parametrize('m_step', ['translations_rotations', 'per_node'])
-def test_every_m_step_block_lowers_the_m_step_energy(arm_frames, arm_rest, m_step):
+@pytest.mark.parametrize('m_step, smoothness', [('translations_rotations', 'paper'), ('per_node', 'paper'),
+                                                ('translations_rotations', 'robust')])
+def test_every_m_step_block_lowers_the_m_step_energy(arm_frames, arm_rest, m_step, smoothness):
     _, frames = arm_frames
-    reg = NonRigidRegistration(arm_rest, RegistrationParams(m_step=m_step))
+    reg = NonRigidRegistration(arm_rest, RegistrationParams(m_step=m_step, smoothness=smoothness))
     sigma2 = 6e-4
     R0, T0 = reg.rotations.copy(), reg.translations.copy()
     R, T = R0.copy(), T0.copy()
+    reg.register_frame(frames[3])            # a strained graph, so the robust weights differ
+    R, T = reg.rotations.copy(), reg.translations.copy()
+    R0, T0 = R.copy(), T.copy()
+    stiffness = reg.edge_stiffness(R, T, sigma2)
+    if smoothness == 'robust':
+        assert stiffness.min() < 0.99 * stiffness.max()
+    else:
+        assert (stiffness == reg.params.beta_smooth).all()
     estep = reg._e_step(frames[6], reg._contributions(R, T).sum(axis=1), sigma2)
-    before = _m_step_objective(reg, estep, sigma2, R, T, R0, T0)
+    before = _m_step_objective(reg, estep, sigma2, R, T, R0, T0, stiffness)
     if m_step == 'per_node':
         reg._update_nodes(estep, sigma2, reg._contributions(R, T), R, T)
-        after = _m_step_objective(reg, estep, sigma2, R, T, R0, T0)
+        after = _m_step_objective(reg, estep, sigma2, R, T, R0, T0, stiffness)
         assert after < before
     else:
-        reg._solve_translations(estep, sigma2, R, T, reg._rotated_offsets(R))
-        middle = _m_step_objective(reg, estep, sigma2, R, T, R0, T0)
+        reg._solve_translations(estep, sigma2, R, T, reg._rotated_offsets(R), stiffness)
+        middle = _m_step_objective(reg, estep, sigma2, R, T, R0, T0, stiffness)
         # exact block minimum: any perturbation of the translations costs energy
         for scale in (1e-4, 1e-3):
             bumped = T + np.random.default_rng(3).normal(scale=scale, size=T.shape)
-            assert _m_step_objective(reg, estep, sigma2, R, bumped, R0, T0) > middle
+            assert _m_step_objective(reg, estep, sigma2, R, bumped, R0, T0, stiffness) > middle
         rotated = reg._rotated_offsets(R)
-        reg._update_rotations(estep, sigma2, reg._contributions(R, T, rotated), R, T, rotated)
-        after = _m_step_objective(reg, estep, sigma2, R, T, R0, T0)
+        reg._update_rotations(estep, sigma2, reg._contributions(R, T, rotated), R, T, rotated, stiffness)
+        after = _m_step_objective(reg, estep, sigma2, R, T, R0, T0, stiffness)
         assert middle < before and after <= middle + 1e-9 * abs(middle)
     assert np.allclose(np.linalg.det(R), 1.0) and np.allclose(R @ np.transpose(R, (0, 2, 1)), np.eye(3), atol=1e-9)
 
 
 def test_exact_em_energy_never_increases(arm_frames):
-    """With the exact E-step (all centroids, no radius) EM is monotone on a frame pair."""
+    """With the exact E-step (all centroids, no radius) EM is monotone on a frame pair.
+    With the paper's smoothness: the robust one is weighted by 1 / sigma2, which changes
+    between iterations, so its objective is not one fixed function (module docstring)."""
     seq, frames = arm_frames
     rest = RestPose.from_points(frames[0], seed=0).points[::8]           # 250 centroids
     params = RegistrationParams(e_step_neighbours=len(rest), truncation_sigmas=np.inf,
-                                tolerance=0.0, max_iterations=15, min_sigma2=1e-12)
+                                tolerance=0.0, max_iterations=15, min_sigma2=1e-12,
+                                smoothness='paper', recapture=False)
     reg = NonRigidRegistration(rest, params)
     result = reg.register_frame(frames[8][::4])
     energies = np.array(result.energies)
@@ -102,8 +116,8 @@ def test_exact_em_energy_never_increases(arm_frames):
 def test_smoothness_and_small_motion_terms_act(arm_frames, arm_rest):
     _, frames = arm_frames
     target = frames[10]
-    free = NonRigidRegistration(arm_rest, RegistrationParams(beta_smooth=1e3))
-    stiff = NonRigidRegistration(arm_rest, RegistrationParams(beta_smooth=1e9))
+    free = NonRigidRegistration(arm_rest, RegistrationParams(beta_smooth=1e3, smoothness='paper'))
+    stiff = NonRigidRegistration(arm_rest, RegistrationParams(beta_smooth=1e9, smoothness='paper'))
     free.register_frame(target)
     stiff.register_frame(target)
     # a huge beta_smooth leaves only near-rigid motion: tiny E_smooth
@@ -229,5 +243,11 @@ def test_parameter_validation():
         RegistrationParams(omega=1.5)
     with pytest.raises(ValueError, match='m_step'):
         RegistrationParams(m_step='magic')
+    with pytest.raises(ValueError, match='smoothness'):
+        RegistrationParams(smoothness='magic')
+    with pytest.raises(ValueError, match='per_node'):
+        RegistrationParams(m_step='per_node')                 # the paper's scheme, robust smoothness
+    with pytest.raises(ValueError, match='edge_strain_scale'):
+        RegistrationParams(edge_strain_scale=0.0)
     with pytest.raises(ValueError, match='rest points'):
         NonRigidRegistration(np.zeros((3, 3)))

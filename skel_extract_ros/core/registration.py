@@ -63,6 +63,29 @@ the paper's scheme (Eq. 5 and 6, node after node, by colour classes).
 
 sigma2 (Eq. 7): sigma2 = sum_mi p_mi |v_i - y'_m|^2 / (3 N_p), with the new y'.
 
+Robust smoothness (deviation, `smoothness='robust'`, the default; measured in
+bench/README.md). The graph is built on the first frame, where a hanging arm touches the
+torso and the legs touch each other, so edges join parts that later move apart. With the
+quadratic E_smooth at beta_smooth = 1e5 a raised arm stays tied to the torso: it lags
+further every frame and is lost. Instead
+    E_smooth = sum_e rho(r_e),   rho(r) = r^2 / (1 + r^2 / tau_e^2)   (Geman-McClure),
+r_e the residual of edge e as above and tau_e = edge_strain_scale x the edge's rest length
+(a residual that size is a relative rotation of about edge_strain_scale radians), weighted
+beta_smooth_relative / sigma2 so that it is measured in the units of E_GMM: the balance of
+data and smoothness is then the same for a hand at 0.8 m and a body at 4 m. Inside each EM
+iteration the loss is replaced by its IRLS majoriser, the quadratic with edge weights
+w_e = 1 / (1 + r_e^2 / tau_e^2)^2 at the current transforms (tight there), so both blocks
+above stay exact and still cannot raise the iteration's objective; an edge strained far
+beyond tau_e (two parts moving apart) stops pulling, one strained little (a bending joint,
+noise) acts as before. Because the weight scales with 1 / sigma2 and sigma2 changes between
+iterations, the reported objective is not a single fixed function across a frame: the
+exact-EM monotonicity holds for `smoothness='paper'` (tested), not for 'robust'.
+
+Recapture (`recapture=True`, core/recapture.py): after EM, a part with no posterior mass
+and a group of observations beyond every centroid's reach are matched, the part is moved
+rigidly onto them and EM is re-run from there; the result is kept if it explains more of the
+frame (larger N_p).
+
 Convergence: the quantity EM decreases is the negative log-likelihood of Eq. (1) plus
 beta_smooth / 2 E_smooth (E_small vanishes at the previous iterate, so it acts as a
 proximal term and cannot make the objective rise). `FrameResult.energies` reports exactly
@@ -84,12 +107,14 @@ from scipy.spatial import cKDTree
 
 from .deformation_graph import DeformationGraph
 from .gmm import GMMStatistics, gmm_posteriors
+from .recapture import find_recaptures, lost_parts, rigid_fit
 from .rigid import rotations_from_h
 
 STATUS_OK = 'ok'
 STATUS_EMPTY = 'empty'
 STATUS_DIVERGED = 'diverged'
 M_STEPS = ('translations_rotations', 'per_node')
+SMOOTHNESS = ('robust', 'paper')
 
 
 @dataclass
@@ -97,7 +122,22 @@ class RegistrationParams:
     """Parameters of the registration (defaults: the paper's Table 1 where it gives one).
 
     omega: weight of the uniform outlier component (Eq. 1).
-    beta_smooth, beta_small: weights of E_smooth and E_small (Eq. 4).
+    smoothness: 'robust' (default) or 'paper'. 'paper' is Eq. (4) as written: E_smooth
+        quadratic with the fixed weight beta_smooth. 'robust' (see "Robust smoothness" in
+        the module docstring) weighs E_smooth by beta_smooth_relative / sigma2 and gives
+        every graph edge a Geman-McClure loss with scale edge_strain_scale.
+    beta_smooth: weight of E_smooth with smoothness='paper' (1 / m^2, Table 1).
+    beta_smooth_relative: with smoothness='robust', E_smooth is weighted
+        beta_smooth_relative / sigma2, in the units of the data term.
+    edge_strain_scale: with smoothness='robust', the Geman-McClure scale of an edge's
+        residual as a fraction of its rest length (about the relative rotation of its
+        two nodes, radians) at which the edge weighs a quarter.
+    beta_small: weight of E_small (Eq. 4).
+    visibility: model points the camera cannot see in a frame (behind an observed surface
+        by more than the E-step's reach) take no part in that frame's E-step and follow
+        the graph (`ObservedView`). False: every point may claim observations (the paper).
+    recapture: after EM, a part left without data is moved rigidly onto the observations
+        nothing explains, and EM re-run from there (`core.recapture`).
     initial_sigma2: GMM variance at the start of every frame, m^2 (Sec. 7).
     max_iterations, tolerance: EM stops after max_iterations or when the relative energy
         change falls below tolerance (Sec. 6, last paragraph).
@@ -118,8 +158,13 @@ class RegistrationParams:
     """
 
     omega: float = 0.01
+    smoothness: str = 'robust'
     beta_smooth: float = 1e5
+    beta_smooth_relative: float = 4.0
+    edge_strain_scale: float = 0.5
     beta_small: float = 1.0
+    visibility: bool = False
+    recapture: bool = True
     initial_sigma2: float = 6e-4
     max_iterations: int = 20
     tolerance: float = 1e-3
@@ -137,16 +182,21 @@ class RegistrationParams:
     def __post_init__(self):
         if not 0.0 <= self.omega < 1.0:
             raise ValueError(f'omega must be in [0, 1), got {self.omega}')
-        for name in ('beta_smooth', 'beta_small'):
+        for name in ('beta_smooth', 'beta_small', 'beta_smooth_relative'):
             if getattr(self, name) < 0:
                 raise ValueError(f'{name} must be non-negative')
-        for name in ('initial_sigma2', 'min_sigma2', 'max_sigma2', 'truncation_sigmas', 'node_spacing_factor'):
+        for name in ('initial_sigma2', 'min_sigma2', 'max_sigma2', 'truncation_sigmas', 'node_spacing_factor',
+                     'edge_strain_scale'):
             if getattr(self, name) <= 0:
                 raise ValueError(f'{name} must be positive')
         if self.max_iterations < 1 or self.e_step_neighbours < 1 or self.n_influence < 1:
             raise ValueError('max_iterations, e_step_neighbours and n_influence must be >= 1')
         if self.m_step not in M_STEPS:
             raise ValueError(f'm_step must be one of {M_STEPS}, got {self.m_step!r}')
+        if self.smoothness not in SMOOTHNESS:
+            raise ValueError(f'smoothness must be one of {SMOOTHNESS}, got {self.smoothness!r}')
+        if self.m_step == 'per_node' and self.smoothness != 'paper':
+            raise ValueError("m_step 'per_node' is the paper's scheme and needs smoothness 'paper'")
 
 
 @dataclass
@@ -156,6 +206,7 @@ class FrameResult:
     points: (M, 3) registered points y' (the last good ones if the frame failed), metres.
     sigma2: final variance (m^2); energies: objective after each E-step.
     matched_fraction: N_p / N, the share of the observations the GMM explains.
+    recaptured: parts moved back onto their observations in this frame (`recapture`).
     """
 
     points: np.ndarray
@@ -164,6 +215,53 @@ class FrameResult:
     iterations: int
     matched_fraction: float
     energies: list = field(default_factory=list)
+    recaptured: int = 0
+
+
+class ObservedView:
+    """What the camera saw of one frame, as directions and ranges from the camera (the
+    origin of the cloud frame), to tell which model points it could have seen.
+
+    A model point is hidden when an observation lies on (nearly) the same ray and is
+    closer to the camera by more than `margin`: the surface there is in front of it. That
+    covers self-occlusion (the torso behind an arm) and the back of a turned body (behind
+    its front) alike. Rays are compared on the unit sphere (k-d tree over the observed
+    directions), so any camera orientation works.
+
+    observed: (N, 3) metres.
+    """
+
+    def __init__(self, observed: np.ndarray):
+        ranges = np.linalg.norm(observed, axis=1)
+        self.ranges = ranges
+        directions = observed / np.maximum(ranges, 1e-9)[:, None]
+        self.tree = cKDTree(directions)
+        # the angular pixel footprint: how far apart neighbouring rays are
+        self.ray_spacing = float(np.median(self.tree.query(directions, k=2)[0][:, 1]))
+
+    def visible(self, points: np.ndarray, margin: float) -> np.ndarray:
+        """(M,) bool: no observation within 1.5 ray spacings of the point's ray is more
+        than `margin` (m) nearer the camera. points (M, 3)."""
+        ranges = np.linalg.norm(points, axis=1)
+        _, nearest = self.tree.query(points / np.maximum(ranges, 1e-9)[:, None], k=4,
+                                     distance_upper_bound=1.5 * self.ray_spacing)
+        found = nearest < len(self.ranges)
+        in_front = np.where(found, self.ranges[np.where(found, nearest, 0)], np.inf)
+        return (in_front.min(axis=1) >= ranges - margin)
+
+
+@dataclass
+class _EMState:
+    """Node transforms, registered points (M, 3), sigma2 and the last E-step of one EM run."""
+
+    rotations: np.ndarray
+    translations: np.ndarray
+    points: np.ndarray
+    sigma2: float
+    estep: GMMStatistics | None
+    iterations: int
+    energies: list
+    recaptured: int = 0
 
 
 def median_spacing(points: np.ndarray) -> float:
@@ -257,9 +355,10 @@ class NonRigidRegistration:
             (np.concatenate([np.ones(len(edges)), -np.ones(len(edges))]),
              (np.tile(np.arange(len(edges)), 2), np.concatenate([edges[:, 0], edges[:, 1]]))),
             shape=(len(edges), n_nodes))                      # +1 at j, -1 at k for edge (j, k)
-        laplacian = (incidence.T @ incidence).tocoo()
-        rows = np.concatenate([np.repeat(graph.point_nodes, k, axis=1).ravel(), laplacian.row, np.arange(n_nodes)])
-        cols = np.concatenate([np.tile(graph.point_nodes, (1, k)).ravel(), laplacian.col, np.arange(n_nodes)])
+        # A directed edge (j, k) with stiffness s adds s at (j, j) and (k, k), -s at (j, k) and (k, j).
+        j, k_ = edges[:, 0], edges[:, 1]
+        rows = np.concatenate([np.repeat(graph.point_nodes, k, axis=1).ravel(), j, k_, j, k_, np.arange(n_nodes)])
+        cols = np.concatenate([np.tile(graph.point_nodes, (1, k)).ravel(), j, k_, k_, j, np.arange(n_nodes)])
         unique_keys, entry_key = np.unique(rows * n_nodes + cols, return_inverse=True)
         key_rows, key_cols = unique_keys // n_nodes, unique_keys % n_nodes
         csc_order = np.lexsort((key_rows, key_cols))
@@ -268,9 +367,10 @@ class NonRigidRegistration:
         self._system_slots = csc_position[entry_key.ravel()]
         self._system_pattern = (key_rows[csc_order],
                                 np.searchsorted(key_cols[csc_order], np.arange(n_nodes + 1)))
-        self._laplacian_values = laplacian.data
+        self._edge_lengths = np.linalg.norm(self._edge_offsets, axis=1)
         self._pair_outer = (graph.point_weights[:, :, None] * graph.point_weights[:, None, :]).reshape(M, -1)
         self._blend = sparse.csr_matrix((pair_weight, (pair_point, pair_node)), shape=(M, n_nodes))
+        self._node_mass = np.maximum(np.asarray(self._blend.sum(axis=0)).ravel(), 1e-12)   # (J,)
         self._incidence = incidence
 
     def _rotated_offsets(self, rotations: np.ndarray) -> np.ndarray:
@@ -286,23 +386,72 @@ class NonRigidRegistration:
         moved = rotated + translations[self.graph.point_nodes]
         return self.graph.point_weights[..., None] * moved
 
-    def smooth_energy(self, rotations: np.ndarray, translations: np.ndarray) -> float:
-        """E_smooth (m^2) of node transforms."""
+    def edge_residuals(self, rotations: np.ndarray, translations: np.ndarray) -> np.ndarray:
+        """(E,) |R_j (g_k - g_j) + g_j + T_j - (g_k + T_k)| per directed edge (m)."""
         g = self.graph.node_positions
         j, k = self.graph.edges[:, 0], self.graph.edges[:, 1]
         predicted = np.einsum('eij,ej->ei', rotations[j], g[k] - g[j]) + g[j] + translations[j]
-        return float(np.sum((predicted - g[k] - translations[k]) ** 2))
+        return np.linalg.norm(predicted - g[k] - translations[k], axis=1)
+
+    def smooth_energy(self, rotations: np.ndarray, translations: np.ndarray) -> float:
+        """E_smooth (m^2) of node transforms (Eq. 4, unweighted)."""
+        return float(np.sum(self.edge_residuals(rotations, translations) ** 2))
+
+    def edge_stiffness(self, rotations: np.ndarray, translations: np.ndarray, sigma2: float,
+                       visible: np.ndarray | None = None) -> np.ndarray:
+        """(E,) weight of each edge's squared residual in the M-step: beta_smooth ('paper'),
+        or the IRLS weight of the robust loss at the current transforms ('robust'). With
+        visible (M,) bool, an edge at a node whose points are mostly hidden keeps its full
+        weight: being out of sight is no evidence that the surface tore there."""
+        p = self.params
+        if p.smoothness == 'paper':
+            return np.full(len(self.graph.edges), p.beta_smooth)
+        scale = p.edge_strain_scale * self._edge_lengths
+        residuals = self.edge_residuals(rotations, translations)
+        strain = residuals / scale
+        weights = 1.0 / (1.0 + strain ** 2) ** 2
+        if visible is not None:
+            seen = (self._blend.T @ visible.astype(float)) / self._node_mass
+            j, k = self.graph.edges[:, 0], self.graph.edges[:, 1]
+            weights = np.where(np.minimum(seen[j], seen[k]) < 0.5, 1.0, weights)
+        return p.beta_smooth_relative / sigma2 * weights
+
+    def smoothness_penalty(self, rotations: np.ndarray, translations: np.ndarray, sigma2: float) -> float:
+        """The smoothness part of the objective: beta_smooth / 2 E_smooth ('paper'), or
+        beta_smooth_relative / (2 sigma2) sum_e rho(r_e) with the Geman-McClure
+        rho(r) = r^2 / (1 + r^2 / tau_e^2) ('robust')."""
+        p = self.params
+        residuals = self.edge_residuals(rotations, translations)
+        if p.smoothness == 'paper':
+            return 0.5 * p.beta_smooth * float(np.sum(residuals ** 2))
+        scale = p.edge_strain_scale * self._edge_lengths
+        return 0.5 * p.beta_smooth_relative / sigma2 * float(np.sum(residuals ** 2 / (1.0 + (residuals / scale) ** 2)))
 
     # ----------------------------------------------------------------------------------
-    def _e_step(self, observed: np.ndarray, points: np.ndarray, sigma2: float) -> GMMStatistics:
+    def _e_step(self, observed: np.ndarray, points: np.ndarray, sigma2: float,
+                view: 'ObservedView | None' = None) -> GMMStatistics:
+        """Eq. (3) over the centroids the camera can see (all without a view)."""
         p = self.params
-        return gmm_posteriors(observed, points, sigma2, p.omega, p.e_step_neighbours, p.truncation_sigmas)
+        if view is None:
+            return gmm_posteriors(observed, points, sigma2, p.omega, p.e_step_neighbours, p.truncation_sigmas)
+        visible = view.visible(points, p.truncation_sigmas * np.sqrt(sigma2))
+        self.last_visible_ = visible
+        stats = gmm_posteriors(observed, points[visible], sigma2, p.omega, p.e_step_neighbours,
+                               p.truncation_sigmas)
+        P1 = np.zeros(len(points))
+        Px = np.zeros((len(points), 3))
+        P1[visible], Px[visible] = stats.P1, stats.Px
+        return GMMStatistics(P1, Px, stats.Np, stats.nll, stats.weighted_sq)
 
     def _solve_translations(self, estep: GMMStatistics, sigma2: float, rotations: np.ndarray,
-                            translations: np.ndarray, rotated: np.ndarray) -> None:
+                            translations: np.ndarray, rotated: np.ndarray,
+                            stiffness: np.ndarray | None = None) -> None:
         """Exact minimisation of E over all node translations at once (in place);
-        rotated: _rotated_offsets(rotations)."""
+        rotated: _rotated_offsets(rotations); stiffness: (E,) edge weights (default
+        edge_stiffness at the current transforms)."""
         p = self.params
+        if stiffness is None:
+            stiffness = self.edge_stiffness(rotations, translations, sigma2)
         graph = self.graph
         g = graph.node_positions
         n_nodes = graph.n_nodes
@@ -311,19 +460,22 @@ class NonRigidRegistration:
         j, k = graph.edges[:, 0], graph.edges[:, 1]
         c = np.einsum('eij,ej->ei', rotations[j], g[k] - g[j]) + g[j] - g[k]
         entries = np.concatenate([(weights[:, None] * self._pair_outer).ravel(),
-                                  p.beta_smooth * self._laplacian_values,
+                                  stiffness, stiffness, -stiffness, -stiffness,
                                   np.full(n_nodes, p.beta_small)])
         values = np.bincount(self._system_slots, weights=entries, minlength=len(self._system_pattern[0]))
         system = sparse.csc_matrix((values, *self._system_pattern), shape=(n_nodes, n_nodes))
         rhs = self._blend.T @ (weights[:, None] * residual_targets) \
-            - p.beta_smooth * (self._incidence.T @ c) + p.beta_small * translations
+            - self._incidence.T @ (stiffness[:, None] * c) + p.beta_small * translations
         translations[:] = spsolve(system, rhs).reshape(-1, 3)
 
     def _update_rotations(self, estep: GMMStatistics, sigma2: float, contributions: np.ndarray,
-                          rotations: np.ndarray, translations: np.ndarray, rotated: np.ndarray) -> None:
+                          rotations: np.ndarray, translations: np.ndarray, rotated: np.ndarray,
+                          stiffness: np.ndarray | None = None) -> None:
         """All rotations at once from the separable majoriser (module docstring), in place;
-        rotated: _rotated_offsets(rotations)."""
+        rotated: _rotated_offsets(rotations); stiffness: (E,) edge weights."""
         p = self.params
+        if stiffness is None:
+            stiffness = self.edge_stiffness(rotations, translations, sigma2)
         graph = self.graph
         g = graph.node_positions
         w = graph.point_weights                                              # (M, k)
@@ -337,7 +489,7 @@ class NonRigidRegistration:
         j, k = graph.edges[:, 0], graph.edges[:, 1]
         a = np.concatenate([a, self._edge_offsets])
         b = np.concatenate([b, node_centres[k] - node_centres[j]])
-        lam = np.concatenate([lam, np.full(len(j), p.beta_smooth)])
+        lam = np.concatenate([lam, stiffness])
         H = (self._rotation_summer @ (lam[:, None, None] * a[:, :, None] * b[:, None, :]).reshape(-1, 9))
         H = H.reshape(-1, 3, 3) + p.beta_small * np.transpose(rotations, (0, 2, 1))
         rotations[:] = rotations_from_h(H)
@@ -383,6 +535,93 @@ class NonRigidRegistration:
             touched = batch['points']
             deformed[touched] = contributions[touched].sum(axis=1)
 
+    def _node_support(self, estep: GMMStatistics) -> np.ndarray:
+        """(J,) posterior mass per carried point that each node's points received (0: no data)."""
+        return (self._blend.T @ estep.P1) / self._node_mass
+
+    def _run_em(self, observed: np.ndarray, view: 'ObservedView | None', rotations: np.ndarray,
+                translations: np.ndarray, iterations_done: int = 0) -> '_EMState':
+        """EM (Alg. 1) from the node transforms given, to convergence or max_iterations."""
+        p = self.params
+        rotated = self._rotated_offsets(rotations)
+        contributions = self._contributions(rotations, translations, rotated)
+        points = contributions.sum(axis=1)
+        sigma2 = p.initial_sigma2
+        energies = []
+        iterations = 0
+        estep = None
+        for iterations in range(1, p.max_iterations + 1):
+            estep = self._e_step(observed, points, sigma2, view)
+            energies.append(estep.nll + self.smoothness_penalty(rotations, translations, sigma2))
+            if len(energies) > 1 and abs(energies[-2] - energies[-1]) <= p.tolerance * abs(energies[-1]):
+                break
+            if estep.Np <= 1e-9:
+                break
+            if p.m_step == 'translations_rotations':
+                # IRLS: the robust edge weights are fixed at this iteration's transforms
+                stiffness = self.edge_stiffness(rotations, translations, sigma2,
+                                                None if view is None else self.last_visible_)
+                self._solve_translations(estep, sigma2, rotations, translations, rotated, stiffness)
+                contributions = self._contributions(rotations, translations, rotated)
+                self._update_rotations(estep, sigma2, contributions, rotations, translations, rotated, stiffness)
+                rotated = self._rotated_offsets(rotations)
+                contributions = self._contributions(rotations, translations, rotated)
+            else:
+                self._update_nodes(estep, sigma2, contributions, rotations, translations)
+            points = contributions.sum(axis=1)
+            # Eq. (7): sum_mi p_mi |v_i - y'_m|^2 / (3 N_p)
+            sigma2 = max(estep.squared_residual(points) / (3.0 * estep.Np), p.min_sigma2)
+            if sigma2 > p.max_sigma2:
+                break
+        return _EMState(rotations, translations, points, sigma2, estep, iterations_done + iterations, energies)
+
+    def _recapture(self, observed: np.ndarray, view: 'ObservedView | None', state: '_EMState') -> '_EMState':
+        """Turn parts EM left behind onto the observations nothing explains (core.recapture),
+        re-run EM from there, and keep that if it explains more of the frame."""
+        p = self.params
+        graph = self.graph
+        if not np.isfinite(state.sigma2):
+            return state
+        support = self._node_support(state.estep)
+        reach = p.truncation_sigmas * np.sqrt(state.sigma2)
+        main_node = graph.point_nodes[np.arange(len(graph.rest_points)), np.argmax(graph.point_weights, axis=1)]
+        node_positions = graph.node_positions + state.translations
+        found = find_recaptures(observed, state.points, node_positions, support, graph.edges, main_node, reach)
+        if not found:
+            return state
+        rotations, translations = state.rotations.copy(), state.translations.copy()
+        for capture in found:
+            nodes = capture.nodes
+            rotations[nodes] = np.einsum('ij,njk->nik', capture.rotation, rotations[nodes])
+            moved = node_positions[nodes] @ capture.rotation.T + capture.shift
+            translations[nodes] = moved - graph.node_positions[nodes]
+        retried = self._run_em(observed, view, rotations, translations, state.iterations)
+        if retried.estep is None or not retried.estep.Np > state.estep.Np:
+            return state
+        retried.energies = state.energies + retried.energies
+        retried.recaptured = len(found)
+        return retried
+
+    def _carry_unseen_parts(self, state: '_EMState') -> None:
+        """Parts without data this frame (out of sight, or lost and not recaptured) move
+        rigidly with the tracked nodes they hang on, from where they were (in place).
+
+        With the robust smoothness such a part is torn off and, having nothing to follow,
+        would stay where it was while the body walks on; the paper's stiff graph dragged it
+        along. This keeps the drag, without letting the part pull on the tracked body."""
+        graph = self.graph
+        support = self._node_support(state.estep)
+        before = graph.node_positions + self.translations
+        after = graph.node_positions + state.translations
+        for nodes, anchors in lost_parts(support, graph.edges):     # a few parts, not points
+            if len(anchors) >= 3:
+                rotation, shift = rigid_fit(before[anchors], after[anchors])
+            else:
+                rotation, shift = np.eye(3), (after[anchors] - before[anchors]).mean(axis=0)
+            state.rotations[nodes] = np.einsum('ij,njk->nik', rotation, self.rotations[nodes])
+            state.translations[nodes] = before[nodes] @ rotation.T + shift - graph.node_positions[nodes]
+        state.points = self._contributions(state.rotations, state.translations).sum(axis=1)
+
     # ----------------------------------------------------------------------------------
     def register_frame(self, observed: np.ndarray) -> FrameResult:
         """Register the current state to one frame's observed points (N, 3), metres."""
@@ -394,39 +633,19 @@ class NonRigidRegistration:
         if len(observed) < p.min_points:
             return FrameResult(self.points.copy(), STATUS_EMPTY, float('nan'), 0, 0.0)
 
-        rotations, translations = self.rotations.copy(), self.translations.copy()
-        rotated = self._rotated_offsets(rotations)
-        contributions = self._contributions(rotations, translations, rotated)
-        points = contributions.sum(axis=1)
-        sigma2 = p.initial_sigma2
-        energies = []
-        iterations = 0
-        estep = None
-        for iterations in range(1, p.max_iterations + 1):
-            estep = self._e_step(observed, points, sigma2)
-            energies.append(estep.nll + 0.5 * p.beta_smooth * self.smooth_energy(rotations, translations))
-            if len(energies) > 1 and abs(energies[-2] - energies[-1]) <= p.tolerance * abs(energies[-1]):
-                break
-            if estep.Np <= 1e-9:
-                break
-            if p.m_step == 'translations_rotations':
-                self._solve_translations(estep, sigma2, rotations, translations, rotated)
-                contributions = self._contributions(rotations, translations, rotated)
-                self._update_rotations(estep, sigma2, contributions, rotations, translations, rotated)
-                rotated = self._rotated_offsets(rotations)
-                contributions = self._contributions(rotations, translations, rotated)
-            else:
-                self._update_nodes(estep, sigma2, contributions, rotations, translations)
-            points = contributions.sum(axis=1)
-            # Eq. (7): sum_mi p_mi |v_i - y'_m|^2 / (3 N_p)
-            sigma2 = max(estep.squared_residual(points) / (3.0 * estep.Np), p.min_sigma2)
-            if sigma2 > p.max_sigma2:
-                break
-
+        view = ObservedView(observed) if p.visibility else None
+        state = self._run_em(observed, view, self.rotations.copy(), self.translations.copy())
+        if p.recapture and state.estep is not None:
+            state = self._recapture(observed, view, state)
+        if p.smoothness == 'robust' and state.estep is not None and np.isfinite(state.sigma2):
+            self._carry_unseen_parts(state)
+        rotations, translations, points, sigma2 = state.rotations, state.translations, state.points, state.sigma2
+        estep, iterations, energies = state.estep, state.iterations, state.energies
         matched_fraction = estep.Np / len(observed) if estep is not None else 0.0
         if not np.isfinite(sigma2) or sigma2 > p.max_sigma2 or matched_fraction < p.min_matched_fraction \
                 or not np.isfinite(points).all():
             return FrameResult(self.points.copy(), STATUS_DIVERGED, float(sigma2), iterations,
                                float(matched_fraction), energies)
         self.rotations, self.translations, self.points = rotations, translations, points
-        return FrameResult(points.copy(), STATUS_OK, float(sigma2), iterations, float(matched_fraction), energies)
+        return FrameResult(points.copy(), STATUS_OK, float(sigma2), iterations, float(matched_fraction), energies,
+                           state.recaptured)

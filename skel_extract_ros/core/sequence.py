@@ -59,7 +59,7 @@ class SequenceRegistration:
 
     Parameters are dataclasses (see their docstrings). Frames before the rest pose get NaN
     points and status 'empty'. Attributes set by `register` (sklearn style): rest_pose_,
-    statuses_ (F,), sigma2_ (F,), iterations_ (F,), times_, segmentation_ (F,) Segmentation
+    statuses_ (F,), sigma2_ (F,), iterations_ (F,), recaptured_ (F,) parts recaptured, times_, segmentation_ (F,) Segmentation
     summaries (status, subject points, background fraction, moving regions; masks dropped),
     and with keep_observed the preprocessed frames observed_ (list of (N_t, 3) float32).
     """
@@ -91,7 +91,7 @@ class SequenceRegistration:
         self.segmentation_ = []
         registration = None
         partial_frames = 0
-        points, statuses, sigma2, iterations = [], [], [], []
+        points, statuses, sigma2, iterations, recaptured = [], [], [], [], []
         self.observed_ = []
         M = self.rest_params.n_points
         for index, raw in enumerate(frames):
@@ -120,6 +120,7 @@ class SequenceRegistration:
                     statuses.append(STATUS_EMPTY)
                     sigma2.append(np.nan)
                     iterations.append(0)
+                    recaptured.append(0)
                     if on_frame:
                         on_frame(index, STATUS_EMPTY)
                     continue
@@ -134,11 +135,13 @@ class SequenceRegistration:
             statuses.append(result.status)
             sigma2.append(result.sigma2)
             iterations.append(result.iterations)
+            recaptured.append(result.recaptured)
             if on_frame:
                 on_frame(index, result.status)
         self.statuses_ = np.array(statuses)
         self.sigma2_ = np.array(sigma2)
         self.iterations_ = np.array(iterations)
+        self.recaptured_ = np.array(recaptured, dtype=int)
         if not points:
             return np.empty((0, M, 3), dtype=np.float32)
         return np.stack(points)

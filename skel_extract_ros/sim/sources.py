@@ -88,3 +88,12 @@ def simulate_mesh_sequence(path, frames: int = 90, start: int = 0, **render_opti
     extra = {'source': np.array(str(path)), 'source_start_frame': np.int64(start),
              'seed': np.int64(render_options.get('seed', 0))}
     return render_in_view(body, extra_ground_truth=extra, **render_options)
+
+
+def simulate_swing(frames: int = 40, swing_frames: int = 4, **render_options) -> SimulatedSequence:
+    """The registration stress body (`stress.swing_body`): an arm swinging up (at 22 cm a
+    frame with swing_frames = 4), then across in front of the torso, seen from the front."""
+    from .stress import swing_body
+
+    return render_in_view(swing_body(frames, swing_frames), distance=2.0,
+                          extra_ground_truth={'seed': np.int64(render_options.get('seed', 0))}, **render_options)
