@@ -35,11 +35,14 @@ def _simulate_sequence(args):
         raise UserError(f'--walk-in must be 0 or more frames, got {args.walk_in}')
     options = dict(resolution=args.resolution, noise=noise, scene=args.scene, seed=args.seed,
                    enter_frames=args.walk_in, surface_samples=args.surface_samples)
+    if args.one_limb_at_a_time and not args.subject:
+        raise UserError('--one-limb-at-a-time applies to a built-in --subject (a clip, rig or mesh '
+                        'sequence brings its own motion)')
     if args.subject:
         if args.start is not None or args.distance is not None or args.azimuth or args.treadmill:
             raise UserError('--start, --distance, --azimuth and --treadmill apply to --bvh, --rig and '
                             '--mesh-sequence; a built-in subject has its own camera')
-        return generate_sequence(args.subject, frames, **options)
+        return generate_sequence(args.subject, frames, one_limb_at_a_time=args.one_limb_at_a_time, **options)
     view = dict(distance=args.distance if args.distance is not None else 3.0, azimuth=args.azimuth)
     if args.bvh:
         return sources.simulate_mocap(args.bvh, frames, args.start, units=args.units,
@@ -225,6 +228,10 @@ def _cmd_run(args) -> int:
         raise UserError(f'{args.input}: {error}') from None
     document = result.model.to_json(stamps[result.frames], result.joint_positions, frame_id)
     (out / 'skeleton.json').write_text(json.dumps(document))
+    from .bvh_export import write_skeleton_bvh
+    write_skeleton_bvh(out / 'skeleton.bvh', result.model.joint_names, result.model.parents,
+                       result.model.rest_joints, stamps[result.frames], result.joint_positions,
+                       result.model.rest_points, result.model.labels, registered[result.frames])
     draw_skeleton_png(out / 'skeleton.png', result.observed, registered[result.frames],
                       result.model.labels, result.joint_positions, result.model.parents,
                       stamps[result.frames], scene=[scenes[i] for i in result.frames])
@@ -232,7 +239,7 @@ def _cmd_run(args) -> int:
     per_frame = np.array(registration.times_.per_frame_registration) * 1000.0
     seconds = result.seconds
     print(f'skeleton: {result.model.n_joints} joints, {result.structure.n_bones} bones '
-          f'-> {out / "skeleton.json"}, {out / "skeleton.png"}')
+          f'-> {out / "skeleton.json"}, {out / "skeleton.bvh"}, {out / "skeleton.png"}')
     print(f'time: segmentation {seconds["segmentation"]:.1f} s | '
           f'preprocess {seconds["preprocess"]:.1f} s | rest pose {seconds["rest_pose"]:.1f} s | '
           f'registration {seconds["registration"]:.1f} s (median {np.median(per_frame):.0f} ms/frame) | '
@@ -266,8 +273,8 @@ def _cmd_replay(args) -> int:
     counts = ', '.join(f'{topic} {n}' for topic, n in sorted(summary['counts'].items()))
     print(f'replayed {summary["n_frames"]} registered frames ({summary["clouds_per_s"]:.1f} clouds/s sustained); '
           f'skeleton: {summary["n_joints"]} joints on {summary["n_frames_with_joints"]} frames')
-    print(f'wrote {out / "output.mcap"} ({counts}), {out / "skeleton.json"}, {out / "registered.npz"}, '
-          f'{out / "skeleton.png"}; node logs in {out / "logs"}')
+    print(f'wrote {out / "output.mcap"} ({counts}), {out / "skeleton.json"}, {out / "skeleton.bvh"}, '
+          f'{out / "registered.npz"}, {out / "skeleton.png"}; node logs in {out / "logs"}')
     for name in ('registration_ms', 'live_joints_ms'):
         if name in summary:
             values = summary[name]
@@ -330,6 +337,9 @@ def build_parser() -> argparse.ArgumentParser:
     simulate.add_argument('--scene', default='empty', choices=['empty', 'floor', 'room'],
                           help='what else the camera sees: nothing, a floor, or a room (floor, back '
                                'and side walls, a table, a standing lamp)')
+    simulate.add_argument('--one-limb-at-a-time', action='store_true',
+                          help='built-in subject: the limbs take turns (one moves at a time, in equal '
+                               'slots of the sequence), as a person waves one arm, then the other')
     simulate.add_argument('--walk-in', type=int, default=0, metavar='N',
                           help='start outside the view and come in sideways over the first N frames')
     simulate.add_argument('--distance', type=float, default=None,

@@ -85,7 +85,8 @@ _REGISTRATION = {
 
 _ACCUMULATOR = {
     'window_size': ('frames collected before the skeletal structure is extracted', (2, 100_000)),
-    'sliding': ('keep extracting every `stride` frames over the last window_size frames', _ANY),
+    'sliding': ('keep growing the skeleton: every `stride` frames the last window_size frames compete for the key '
+                'frames and the structure is learned again', _ANY),
     'stride': ('frames between extractions when sliding', (1, 100_000)),
     'n_clusters': ('initial K-means clusters (deliberately more than the bones)', (2, 10_000)),
     'cluster_on': ('K-means features: trajectories (whole registered paths) or rest (positions)', _ANY),
@@ -93,13 +94,17 @@ _ACCUMULATOR = {
     'neighbour_radius': ('ball radius for local continuity and bone adjacency, m; 0 = automatic', (0.0, INF)),
     'neighbour_radius_factor': ('automatic radius = this x the median rest point spacing', (0.1, 100.0)),
     'min_bone_fraction': ('bones with fewer than this share of the points are dropped', (0.0, 1.0)),
-    'motion_noise_factor': ('own motion below this x the rigid-fit noise: bone merged into its parent',
-                            (0.0, INF)),
-    'min_motion_fraction': ('own motion below this x the subject size: bone merged into its parent', (0.0, 1.0)),
+    'motion_noise_factor': ('evidence a joint needs: its relative rotation over the window over the rotation the '
+                            'registration noise alone makes (swap displacement / rigid-fit noise); below it the '
+                            'bone is merged into its parent', (0.0, INF)),
     'leaf_min_fraction': ('paper rule 1: leaf bones at branching joints below this share of points are dropped',
                           (0.0, 1.0)),
     'joint_merge_fraction': ('paper rule 3: joints closer than this x the subject size are merged', (0.0, 1.0)),
     'eta': ('weight of the joint data term, Step 2 joint solve (Table 1)', (0.0, INF)),
+    'max_key_frames': ('the growing skeleton is learned from at most this many frames, the most different poses '
+                       'seen so far', (2, 100_000)),
+    'joint_match_fraction': ('joints of two updates closer than this x the subject size are the same joint '
+                             '(keep id and name)', (0.0, 1.0)),
     'anchor_depth': ('joint anchors c~: medial (moved back along the camera ray to the bone\'s '
                      'cross-section centre) or surface (the paper\'s boundary centroid)', _ANY),
     'camera_location': ('[x, y, z] m, the sensor origin in the cloud frame (camera rays for medial anchors)',

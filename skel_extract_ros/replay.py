@@ -7,8 +7,8 @@ bag's pace scaled by `rate` (0 = as fast as the registration node takes them). A
 never published before the registration node has answered the previous one, so the
 replay loses nothing however slow the machine is; the printed rate says what was
 sustained. Every output topic is recorded (raw CDR, receive time) into DIR/output.mcap
-with rosbags, and skeleton.json / registered.npz / skeleton.png are written from the
-received messages: the same files as `skel-extract run`.
+with rosbags, and skeleton.json / skeleton.bvh / registered.npz / skeleton.png are written
+from the received messages: the same files as `skel-extract run`.
 """
 from __future__ import annotations
 
@@ -174,8 +174,8 @@ class _Recorder:
 
 def replay(input_path, out, rate: float = 1.0, topic: str | None = None, params_file=None,
            namespace: str | None = None, frame_timeout: float = 20.0, progress=None) -> dict:
-    """Run the node graph on a bag; writes DIR/output.mcap, skeleton.json, registered.npz,
-    skeleton.png and DIR/logs/<node>.log. Returns a summary dict (counts, latencies).
+    """Run the node graph on a bag; writes DIR/output.mcap, skeleton.json, skeleton.bvh,
+    registered.npz, skeleton.png and DIR/logs/<node>.log. Returns a summary dict (counts, latencies).
     Raises ReplayError / BagError on failure."""
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
@@ -312,6 +312,7 @@ def replay(input_path, out, rate: float = 1.0, topic: str | None = None, params_
 
 
 def _write_files(received: Received, out: Path) -> dict:
+    from .bvh_export import write_skeleton_bvh
     from .core.skeleton_model import skeleton_document
     from .visualization import draw_skeleton_png
 
@@ -332,8 +333,12 @@ def _write_files(received: Received, out: Path) -> dict:
                                  description['frame_id'])
     (out / 'skeleton.json').write_text(json.dumps(document))
     labels = np.asarray(received.structure['labels'])
+    registered = np.stack([received.registered[s] for s in with_joints])
+    write_skeleton_bvh(out / 'skeleton.bvh', description['joint_names'], description['parents'],
+                       description['rest_positions'], np.array(with_joints) * 1e-9, positions,
+                       received.rest, labels, registered)
     observed = [received.filtered.get(s, np.empty((0, 3))) for s in with_joints]
-    draw_skeleton_png(out / 'skeleton.png', observed, np.stack([received.registered[s] for s in with_joints]),
+    draw_skeleton_png(out / 'skeleton.png', observed, registered,
                       labels, positions, np.asarray(description['parents']), np.array(with_joints) * 1e-9)
     return {'n_frames': len(stamps_ns), 'n_joints': n_joints, 'n_frames_with_joints': len(with_joints)}
 

@@ -1,4 +1,4 @@
-"""Windows of the accumulator (sliding, stride, a failed window retried) and the joint
+"""Windows of the accumulator (sliding, stride, a growing skeleton, a failed window retried) and the joint
 node's buffer (overflow, frames arriving during Alg. 2), on real DDS in process."""
 import json
 
@@ -13,6 +13,7 @@ from skel_extract_ros.nodes.accumulator_node import AccumulatorNode
 from skel_extract_ros.nodes.common import LATCHED_QOS, STREAM_QOS
 from skel_extract_ros.nodes.conversions import cloud_message, structure_document
 from skel_extract_ros.nodes.joint_estimation_node import JointEstimationNode
+from test_growth import three_part_chain
 from two_bone import two_bone_sequence
 from sensor_msgs.msg import PointCloud2
 
@@ -37,22 +38,58 @@ def window_of(document):
     return [(s - T0) // DT for s in document['window_stamps_ns']]
 
 
-def test_sliding_windows_every_stride_frames(ros):
+def test_sliding_windows_grow_one_skeleton_every_stride_frames(ros):
     rest, registered, _, _, _ = two_bone_sequence(n_frames=18)
     node = ros.add(AccumulatorNode, parameter_overrides=[
         Parameter('window_size', value=10), Parameter('sliding', value=True),
-        Parameter('stride', value=4), Parameter('n_clusters', value=12)])
+        Parameter('stride', value=4), Parameter('n_clusters', value=12), Parameter('max_key_frames', value=12)])
     structures = ros.listen('skeleton/structure', String, LATCHED_QOS)
     publish_rest(ros, rest)
     publish_frames(ros, registered[:10], 0)
     ros.wait(lambda: len(structures) == 1, what='the first window')
+    assert window_of(json.loads(structures[0].data)) == list(range(0, 10))
     publish_frames(ros, registered[10:14], 10)
-    ros.wait(lambda: len(structures) == 2, what='the window after one stride')
+    ros.wait(lambda: node.extractions == 2, what='the update after one stride')
     publish_frames(ros, registered[14:18], 14)
-    ros.wait(lambda: len(structures) == 3, what='the window after two strides')
-    windows = [window_of(json.loads(m.data)) for m in structures]
-    assert windows == [list(range(0, 10)), list(range(4, 14)), list(range(8, 18))]
-    assert node.extractions == 3
+    ros.wait(lambda: node.extractions == 3, what='the update after two strides')
+    # the same two bones all along: published again only if something changed (which bone is
+    # the root may flip: the two are the same size), and the joint keeps its id
+    ros.wait(lambda: len(structures) == node.published, what='every published structure')
+    documents = [json.loads(m.data) for m in structures]
+    assert all(d['n_bones'] == 2 for d in documents)
+    ids = {d['joint_ids'][int(np.argmin(np.linalg.norm(d['joints'], axis=1)))] for d in documents}
+    assert len(ids) == 1
+    # the key frames: at most 12, drawn from the whole sequence, not just the last window
+    key = list(node.growth.key_stamps)
+    assert len(key) == 12 and min(key) < T0 + 8 * DT and max(key) >= T0 + 14 * DT
+
+
+def test_limbs_moving_in_different_windows_grow_one_structure_over_dds(ros):
+    rest, left = three_part_chain(30, 'left')
+    _, right = three_part_chain(30, 'right', seed=1)
+    right = right - right[0] + left[-1]
+    ros.add(AccumulatorNode, parameter_overrides=[
+        Parameter('window_size', value=30), Parameter('sliding', value=True), Parameter('stride', value=30),
+        Parameter('n_clusters', value=20), Parameter('max_key_frames', value=30)])
+    structures = ros.listen('skeleton/structure', String, LATCHED_QOS)
+    publish_rest(ros, rest)
+    publish_frames(ros, left, 0)
+    ros.wait(lambda: len(structures) == 1, what='the structure of the left joint')
+    publish_frames(ros, right, 30)
+    ros.wait(lambda: len(structures) == 2, what='the structure grown by the right joint')
+    first, second = (json.loads(m.data) for m in structures)
+    assert first['n_bones'] == 2 and second['n_bones'] == 3
+    assert set(first['joint_ids']) < set(second['joint_ids'])
+    new = set(second['joint_ids']) - set(first['joint_ids'])
+    assert second['changes']['added'] == [f'joint_{i}' for i in sorted(new)]
+    # the joints keep their place: each old id is still at its rest position (but the root's,
+    # the root bone's centre, which moves as the root bone loses the right part)
+    for joint_id, parent, position in zip(first['joint_ids'], first['parents'], first['joints']):
+        if parent < 0:
+            assert second['parents'][second['joint_ids'].index(joint_id)] < 0
+            continue
+        index = second['joint_ids'].index(joint_id)
+        assert np.linalg.norm(np.subtract(second['joints'][index], position)) < 0.05
 
 
 def test_a_window_without_motion_is_retried_on_the_next_window(ros):
@@ -68,7 +105,8 @@ def test_a_window_without_motion_is_retried_on_the_next_window(ros):
     assert not structures
     publish_frames(ros, registered, 10)                   # then it moves
     ros.wait(lambda: len(structures) == 1, what='a structure from the next window')
-    assert window_of(json.loads(structures[0].data)) == list(range(10, 20))
+    # the still frames stay among the key frames (they are poses too), the moving ones joined them
+    assert window_of(json.loads(structures[0].data)) == list(range(0, 20))
 
 
 def structure_message(rest, registered, first):

@@ -10,7 +10,7 @@ from skel_extract_ros.core.joints import JointEstimation, JointParams, simplex_l
 from skel_extract_ros.core.rigid import fit_rigid_segments
 from skel_extract_ros.core.structure import (StructureError, StructureParams, _neighbour_graph, _residuals,
                                              boundary_centroids, extract_structure, medial_anchors,
-                                             solve_joints)
+                                             solve_joints, split_evidence)
 from two_bone import two_bone_sequence
 
 
@@ -211,3 +211,58 @@ def test_expanded_residuals_equal_the_direct_sums():
     weighted = np.einsum('tm,tsm->ms', c, np.sum((registered[:, None] - moved) ** 2, axis=3))
     costs = JointEstimation.single_bone_costs(rest, rotations, translations, c, registered)
     assert np.allclose(costs, weighted, atol=1e-9)
+
+
+def _cylinder_pair(n_frames, bend_deg, noise, smooth, seed=0):
+    """Two 30 cm cylinders joined at the origin, moving together, the second bending by
+    up to bend_deg about the joint; every point gets i.i.d. noise (m) plus a smooth random
+    displacement field per frame of amplitude `smooth` (m), what a deformation graph leaves."""
+    rng = np.random.default_rng(seed)
+    t = rng.uniform(0, 2 * np.pi, 1200)
+    along = rng.uniform(0.0, 0.3, 1200)
+    side = np.where(np.arange(1200) < 600, -1.0, 1.0)
+    rest = np.column_stack([side * (along + 0.005), 0.04 * np.cos(t), 0.04 * np.sin(t)])
+    frames = []
+    for f in range(n_frames):
+        phase = 2 * np.pi * f / n_frames
+        base = Rotation.from_rotvec([0.3 * np.sin(phase), 0.5 * np.cos(phase), 0.1]).as_matrix()
+        bend = Rotation.from_rotvec(np.radians(bend_deg) * np.array([0.0, np.sin(phase), np.cos(phase)])).as_matrix()
+        moved = rest.copy()
+        moved[side > 0] = rest[side > 0] @ bend.T
+        moved = moved @ base.T + np.array([0.1 * np.sin(phase), 0.0, 2.0])
+        wave = rng.normal(size=(3, 3))       # a field varying over ~half the length
+        field = smooth * np.sin(rest[:, :1] * wave[0] * 6.0 + wave[1]) * np.sign(wave[2])
+        frames.append(moved + field + rng.normal(scale=noise, size=moved.shape))
+    return rest, np.array(frames), (side > 0).astype(int)
+
+
+def test_a_small_true_bend_is_split_on_evidence_not_size():
+    # a 3 degree bend moves the second part's points by ~5 mm RMS, under 2 % of the subject
+    # size (the old floor), but far beyond what 1 mm of registration noise can explain
+    rest, registered, truth = _cylinder_pair(40, bend_deg=3.0, noise=0.001, smooth=0.001)
+    structure = extract_structure(rest, registered, StructureParams(n_clusters=20))
+    assert structure.n_bones == 2
+    agreement = np.mean(structure.labels == truth)
+    assert max(agreement, 1 - agreement) > 0.95
+    child = int(np.flatnonzero(structure.parents >= 0)[0])
+    assert structure.split_evidence[child] > StructureParams().motion_noise_factor
+    assert np.linalg.norm(structure.joints[child]) < 0.03
+
+
+def test_one_rigid_part_with_registration_noise_is_not_split():
+    # no bend: 20 clusters along one rigid body moving fast, under i.i.d. noise and a smooth
+    # deformation field as large as the noise; every split must be merged again
+    rest, registered, _ = _cylinder_pair(40, bend_deg=0.0, noise=0.004, smooth=0.004)
+    with pytest.raises(StructureError, match='too small to separate'):
+        extract_structure(rest, registered, StructureParams(n_clusters=20))
+
+
+def test_split_evidence_grows_with_the_bend_and_falls_with_the_noise():
+    def evidence(bend, noise):
+        rest, registered, truth = _cylinder_pair(30, bend_deg=bend, noise=noise, smooth=noise)
+        rotations, translations = fit_rigid_segments(rest, registered, truth, 2)
+        return split_evidence(_residuals(rest, registered, rotations, translations), truth, np.array([-1, 0]),
+                              len(registered))[1]
+    assert evidence(20.0, 0.002) > 2.0 * evidence(6.0, 0.002)
+    assert evidence(6.0, 0.002) > 2.0 * evidence(6.0, 0.006)
+    assert evidence(0.0, 0.002) < StructureParams().motion_noise_factor

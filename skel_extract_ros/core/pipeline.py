@@ -13,21 +13,25 @@ from typing import Callable, Iterable
 
 import numpy as np
 
-from .joints import JointEstimate, JointEstimation, JointParams
+from .growth import SkeletonGrowth
+from .joints import JointEstimate, JointParams
+from .live import LiveJointTracker
 from .preprocess import PreprocessParams
 from .registration import STATUS_OK, RegistrationParams
 from .rest_pose import RestPoseParams
 from .segmentation import SegmentationParams
 from .sequence import SequenceRegistration
 from .skeleton_model import SkeletonModel
-from .structure import SkeletalStructure, StructureParams, extract_structure
+from .rigid import fit_rigid_segments
+from .structure import SkeletalStructure, StructureParams, joint_trajectories
 
 
 @dataclass
 class PipelineResult:
     """registered: (F, M, 3); statuses: (F,); frames: indices of the frames with a skeleton
     (those registered with status ok); step2_positions / joint_positions: (F', J, 3) joint
-    positions after Step 2 and after Step 3 for those frames; seconds per step."""
+    positions after Step 2 and after Step 3 for those frames; seconds per step; key_frames:
+    the frames (indices into registered) the skeleton was learned on."""
 
     registered: np.ndarray
     statuses: np.ndarray
@@ -39,6 +43,7 @@ class PipelineResult:
     joint_positions: np.ndarray
     observed: list
     seconds: dict = field(default_factory=dict)
+    key_frames: np.ndarray | None = None
 
 
 class SkeletonPipeline:
@@ -57,7 +62,14 @@ class SkeletonPipeline:
         return self.registration.register(frames, on_frame)
 
     def extract(self, registered: np.ndarray) -> PipelineResult:
-        """Steps 2 and 3 on the frames `register` produced (raises StructureError)."""
+        """Steps 2 and 3 on the frames `register` produced (raises StructureError).
+
+        The skeleton is learned on the key frames (core.growth: the most different poses,
+        at most structure max_key_frames of them; every frame of a shorter sequence), so a
+        long recording in which the limbs move at different times gives one skeleton with
+        all of them. Key frames get Alg. 2's joints; the other frames the learned model
+        fitted to their registered points (core.live), Step 2 positions from per-bone rigid
+        fits."""
         reg = self.registration
         statuses = reg.statuses_
         # only frames the registration fitted: empty and diverged frames repeat the last
@@ -68,15 +80,27 @@ class SkeletonPipeline:
         seconds = {'segmentation': reg.times_.segmentation, 'preprocess': reg.times_.preprocess,
                    'rest_pose': reg.times_.rest_pose,
                    'registration': reg.times_.registration}
-        started = time.perf_counter()
-        structure = extract_structure(rest, window, self.structure_params)
-        seconds['structure'] = time.perf_counter() - started
-        started = time.perf_counter()
         observed = [reg.observed_[i] for i in frames]
-        estimate = JointEstimation(self.joint_params).fit(rest, window, observed, structure)
-        seconds['joints'] = time.perf_counter() - started
+        growth = SkeletonGrowth(rest, self.structure_params, self.joint_params)
+        growth.add_frames(frames, window, observed)
+        started = time.perf_counter()
+        update = growth.update(np.empty(0, dtype=np.int64), np.empty((0,) + rest.shape), [])
+        seconds['structure'] = growth.seconds_['structure']
+        seconds['joints'] = growth.seconds_['joints']
+        structure, estimate = update.structure, update.estimate
         model = SkeletonModel(rest, structure.labels, estimate.parents, estimate.joints,
-                              estimate.influences, estimate.weights)
-        return PipelineResult(registered, statuses, frames, structure, estimate, model,
-                              structure.joint_trajectories(), estimate.joint_trajectories(),
-                              observed, seconds)
+                              estimate.influences, estimate.weights, update.joint_ids)
+        key = np.searchsorted(frames, update.key_stamps)             # key frames among `frames`
+        # Step 2: per-bone rigid fits on every frame; Step 3: Alg. 2 on the key frames, the
+        # learned model fitted to the others
+        rotations, translations = fit_rigid_segments(rest, window, structure.labels, structure.n_bones)
+        step2 = joint_trajectories(rotations, translations, structure.joints, structure.parents)
+        joint_positions = np.empty_like(step2)
+        joint_positions[key] = estimate.joint_trajectories()
+        others = np.setdiff1d(np.arange(len(frames)), key)
+        if len(others):
+            tracker = LiveJointTracker(model, self.joint_params)
+            joint_positions[others] = np.stack([tracker.track(window[i]) for i in others])
+        seconds['live'] = time.perf_counter() - started - seconds['structure'] - seconds['joints']
+        return PipelineResult(registered, statuses, frames, structure, estimate, model, step2, joint_positions,
+                              observed, seconds, frames[key])

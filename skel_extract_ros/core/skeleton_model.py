@@ -13,7 +13,9 @@ import numpy as np
 @dataclass
 class SkeletonModel:
     """rest_points (M, 3), labels (M,), parents (B,), rest_joints (B, 3), all metres in the
-    rest frame (the cloud frame of the rest-pose frame); LBS influences/weights (M, k)."""
+    rest frame (the cloud frame of the rest-pose frame); LBS influences/weights (M, k);
+    joint_ids (B,): stable ids that name the joints across updates of a growing skeleton
+    (core.growth; None: 0..B-1)."""
 
     rest_points: np.ndarray
     labels: np.ndarray
@@ -21,6 +23,7 @@ class SkeletonModel:
     rest_joints: np.ndarray
     influences: np.ndarray
     weights: np.ndarray
+    joint_ids: np.ndarray | None = None
 
     @property
     def n_joints(self) -> int:
@@ -28,7 +31,8 @@ class SkeletonModel:
 
     @property
     def joint_names(self) -> list:
-        return [f'joint_{i}' for i in range(self.n_joints)]
+        ids = range(self.n_joints) if self.joint_ids is None else self.joint_ids
+        return [f'joint_{int(i)}' for i in ids]
 
     def to_json(self, stamps, positions, frame_id: str) -> dict:
         """The skeleton.json document (DESIGN.md): stamps (F,) s, positions (F, J, 3) m."""

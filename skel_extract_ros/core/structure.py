@@ -12,12 +12,8 @@
    from a hand to a body), repeated until nothing changes:
    - bones with fewer than `min_bone_fraction` of the points are dropped (their points go
      to the bone that fits them best): too few points for a reliable rigid fit;
-   - bones with too little motion of their own are merged into the parent: when moving a
-     bone with its parent's transform (Eq. 10, the swap) displaces its points by an RMS
-     below max(`motion_noise_factor` x the RMS residual of the rigid fits, the noise of
-     the registered points, or `min_motion_fraction` x the subject size), nothing
-     distinguishes it from its parent. Clusters inside one rigid part differ by a few
-     millimetres (the deformation graph bends smoothly), real joints by centimetres;
+   - a bone whose motion against its parent the registration's own noise could explain
+     is merged into the parent (see "Split evidence" below);
    - paper rule 1: at a joint with several children, a child that is a leaf and holds
      fewer than `leaf_min_fraction` of the points is removed;
    - paper rule 2: loops cannot occur, the graph is a spanning tree rebuilt after each
@@ -27,6 +23,26 @@
 5. Initial joint locations c_jk minimise E_Joint (Sec. 6) for the fitted transforms:
    eta |c - c~|^2 + sum_t |(R_j^t - R_k^t) c + T_j^t - T_k^t|^2, c~ the centroid of the
    boundary points between the two bones; a 3 x 3 solve per joint.
+
+Split evidence (deviation: the paper merges nothing by motion). Two adjacent clusters are
+two bones when two rigid motions explain their points better than one by more than the
+registration's noise could. The physical quantity is their relative rotation over the
+window, measured on the points: moving each cluster with the other's transform (the swap of
+Eq. 10) displaces its points by an RMS `d` per frame, and for clusters turning against each
+other by an angle theta about a joint, d ~ theta x r, r the RMS distance of their points from
+their centre. The noise is measured on the sequence: `noise`, the RMS residual per point and
+frame of every cluster's own rigid fit (median over points: what the registration leaves
+when nothing bends). Noise alone turns two clusters against each other by about noise / r,
+so the evidence for a joint is the ratio
+    split_evidence = (d / r) / (noise / r) = d / noise,
+relative rotation over the rotation noise produces at that size: scale-free, so the same
+`motion_noise_factor` serves a hand, a body and a cow. The bone with the least evidence is
+merged first, one at a time, until every joint has evidence >= motion_noise_factor. The
+relative rotation is measured through the points rather than as the angle between fitted
+rotations because the turn of a thin part about its own axis barely moves its points and
+is barely determined by them (measured: it gave 180 degree "bends" between the halves of
+rigid forearms). bench/README.md compares this with the earlier rule (a floor of 2 % of the
+subject size on d), and with a null distribution from cutting each cluster in two.
 
 Deviation (anchor_depth='medial', the default): one depth camera sees only the front of
 each limb, so the boundary centroid c~ lies on the visible surface, about a limb radius in
@@ -63,9 +79,16 @@ class StructureParams:
     n_rounds: rounds of fit / relabel / continuity (the paper uses 10).
     neighbour_radius: ball radius (m) for local continuity and bone adjacency; None =
         `neighbour_radius_factor` x the median rest point spacing.
-    min_bone_fraction, motion_noise_factor, min_motion_fraction, leaf_min_fraction,
-        joint_merge_fraction: refinement thresholds (see the module docstring).
+    min_bone_fraction, leaf_min_fraction, joint_merge_fraction: refinement thresholds as
+        fractions of the points or of the subject size (see the module docstring).
+    motion_noise_factor: evidence a joint needs: its relative rotation over the window
+        must exceed this many times what the registration noise alone produces (the module
+        docstring, "Split evidence"); dimensionless.
     eta: weight of the joint data term (Table 1).
+    max_key_frames: a growing skeleton (core.growth) is learned from at most this many
+        frames, the most different poses seen so far.
+    joint_match_fraction: a growing skeleton's joints of two updates within this share of
+        the subject size are the same joint (keep their id and name).
     anchor_depth: 'medial' (c~ moved back to the bone's cross-section centre, see
         `medial_anchors`) or 'surface' (the paper's boundary centroid as is).
     camera_location: (3,) sensor origin in the cloud frame (m), for the camera rays.
@@ -78,11 +101,12 @@ class StructureParams:
     neighbour_radius: float | None = None
     neighbour_radius_factor: float = 2.5
     min_bone_fraction: float = 0.01
-    motion_noise_factor: float = 4.0
-    min_motion_fraction: float = 0.02
+    motion_noise_factor: float = 5.0
     leaf_min_fraction: float = 0.02
     joint_merge_fraction: float = 0.03
     eta: float = 1.0
+    max_key_frames: int = 90
+    joint_match_fraction: float = 0.05
     anchor_depth: str = 'medial'
     camera_location: tuple = (0.0, 0.0, 0.0)
     seed: int = 0
@@ -94,6 +118,10 @@ class StructureParams:
             raise ValueError(f"anchor_depth must be 'medial' or 'surface', got {self.anchor_depth!r}")
         if len(self.camera_location) != 3:
             raise ValueError(f'camera_location must be [x, y, z], got {list(self.camera_location)}')
+        if self.max_key_frames < 2:
+            raise ValueError(f'max_key_frames must be >= 2, got {self.max_key_frames}')
+        if not 0.0 < self.joint_match_fraction < 1.0:
+            raise ValueError(f'joint_match_fraction must be in (0, 1), got {self.joint_match_fraction}')
         if self.n_clusters < 2 or self.n_rounds < 0:
             raise ValueError('n_clusters must be >= 2 and n_rounds >= 0')
 
@@ -106,7 +134,8 @@ class SkeletalStructure:
     rotations (F, B, 3, 3) and translations (F, B, 3): bone transforms, rest -> frame;
     joints: (B, 3) rest-frame joint between each bone and its parent (for the root: its
     centre); boundary_centroids: (B, 3) the anchor c~ of each joint (root: its centre),
-    moved to the medial depth unless anchor_depth is 'surface'.
+    moved to the medial depth unless anchor_depth is 'surface'; split_evidence: (B,) the
+    evidence for each joint (module docstring; inf for the root).
     """
 
     labels: np.ndarray
@@ -115,6 +144,7 @@ class SkeletalStructure:
     translations: np.ndarray
     joints: np.ndarray
     boundary_centroids: np.ndarray
+    split_evidence: np.ndarray | None = None
 
     @property
     def n_bones(self) -> int:
@@ -222,6 +252,19 @@ def _own_motion(residual: np.ndarray, labels: np.ndarray, parents: np.ndarray, n
     return result
 
 
+def split_evidence(residual: np.ndarray, labels: np.ndarray, parents: np.ndarray, n_frames: int,
+                   size: float = 1.0) -> np.ndarray:
+    """(B,) for each bone, its relative rotation against its parent over the window in units
+    of the rotation the registration noise produces (module docstring, "Split evidence"):
+    the swap displacement (`_own_motion`) over the median RMS residual per point and frame
+    of the bones' own rigid fits. inf for the root. residual (M, B) as _residuals; size:
+    the subject's size (m), for the floor of the noise: 1e-6 of it is float64 round-off
+    in the expanded residuals, not registration noise (an exactly rigid sequence)."""
+    own = residual[np.arange(len(labels)), labels]
+    noise = max(np.sqrt(float(np.median(own)) / n_frames), 1e-6 * size)
+    return _own_motion(residual, labels, parents, n_frames) / noise
+
+
 def solve_joints(rotations, translations, parents, anchors, eta: float) -> np.ndarray:
     """(B, 3) rest-frame joints minimising E_Joint for each bone and its parent.
 
@@ -321,9 +364,14 @@ def _anchors(labels, parents, adjacency, rest, params: 'StructureParams') -> np.
     return anchors
 
 
-def extract_structure(rest: np.ndarray, registered: np.ndarray,
-                      params: StructureParams | None = None) -> SkeletalStructure:
-    """Bones and bone tree from rest points (M, 3) and their registered sequence (F, M, 3)."""
+def extract_structure(rest: np.ndarray, registered: np.ndarray, params: StructureParams | None = None,
+                      previous_labels: np.ndarray | None = None) -> SkeletalStructure:
+    """Bones and bone tree from rest points (M, 3) and their registered sequence (F, M, 3).
+
+    previous_labels (M,): the bones of an earlier structure of the same rest pose (a growing
+    skeleton): the K-means clusters are cut along its bone boundaries too, so a boundary
+    found before is a candidate again (kept if the evidence still holds), instead of
+    depending on where this run's K-means happens to put its clusters."""
     params = params or StructureParams()
     rest = np.asarray(rest, dtype=np.float64)
     registered = np.asarray(registered, dtype=np.float64)
@@ -340,6 +388,11 @@ def extract_structure(rest: np.ndarray, registered: np.ndarray,
     K = min(params.n_clusters, M // 10)
     rng = np.random.default_rng(params.seed)
     _, labels = kmeans2(features, K, minit='++', seed=rng)
+    if previous_labels is not None:
+        previous_labels = np.asarray(previous_labels, dtype=np.int64)
+        if previous_labels.shape != (M,):
+            raise ValueError(f'previous_labels must be ({M},), got {previous_labels.shape}')
+        labels = labels * (previous_labels.max() + 1) + previous_labels
     labels = _compact(labels)
 
     for _ in range(params.n_rounds):
@@ -362,13 +415,11 @@ def extract_structure(rest: np.ndarray, registered: np.ndarray,
         small = np.flatnonzero(counts < params.min_bone_fraction * M)
         if len(small):
             remove = int(small[np.argmin(counts[small])])
+        evidence = split_evidence(residual, labels, parents, len(registered), size)
         if remove is None:
-            motion = _own_motion(residual, labels, parents, len(registered))
-            noise = np.sqrt(np.median(residual[np.arange(M), labels]) / len(registered))
-            still = np.flatnonzero(motion < max(params.motion_noise_factor * noise,
-                                                params.min_motion_fraction * size))
+            still = np.flatnonzero(evidence < params.motion_noise_factor)
             if len(still):
-                remove = int(still[np.argmin(motion[still])])
+                remove = int(still[np.argmin(evidence[still])])
         if remove is None:
             children = np.bincount(parents[parents >= 0], minlength=B)
             for b in np.flatnonzero(parents >= 0):
@@ -397,4 +448,4 @@ def extract_structure(rest: np.ndarray, registered: np.ndarray,
                              'of the subject moves rigidly together')
     anchors = _anchors(labels, parents, adjacency, rest, params)
     joints = solve_joints(rotations, translations, parents, anchors, params.eta)
-    return SkeletalStructure(labels, parents, rotations, translations, joints, anchors)
+    return SkeletalStructure(labels, parents, rotations, translations, joints, anchors, evidence)

@@ -1,12 +1,16 @@
-"""accumulator_node: Step 2 on a window of registered frames.
+"""accumulator_node: Step 2 on windows of registered frames, grown into one skeleton.
 
 Subscribes  registered_points, filtered_points (PointCloud2, reliable), paired by stamp
-            rest_points (PointCloud2, transient local): a new rest pose starts a new window
+            rest_points (PointCloud2, transient local): a new rest pose starts a new skeleton
 Publishes   skeleton/structure (std_msgs/String JSON, transient local): bones, bone tree,
-            per-point labels, window stamps (see conversions.structure_document)
+            per-point labels, stable joint ids, what changed, and the stamps of the key
+            frames it was learned on (see conversions.structure_document)
 Service     ~/extract (std_srvs/Trigger): extract now from the frames collected so far
 
-Extraction runs on its own thread so the subscriptions keep collecting meanwhile.
+Every window (and with `sliding`, every `stride` frames after it) goes into one growing
+skeleton (core.growth): the structure is learned on the most different poses seen so far,
+so a joint appears once its part has moved and stays; it is published again only when it
+changed. Extraction runs on its own thread so the subscriptions keep collecting meanwhile.
 """
 from __future__ import annotations
 
@@ -21,7 +25,8 @@ from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
-from ..core.structure import StructureError, StructureParams, extract_structure
+from ..core.growth import SkeletonGrowth
+from ..core.structure import StructureError, StructureParams
 from ..params import structure_params_from_dict
 from .common import (LATCHED_QOS, STREAM_QOS, StampPairer, ThrottledLog, declare_node_parameters,
                      decode_or_warn, decode_registered_or_warn, run_node)
@@ -40,6 +45,7 @@ class AccumulatorNode(Node):
         self._lock = threading.Lock()
         self.rest = None                 # (M, 3) float64
         self.rest_stamp = None
+        self.growth = None               # the skeleton of the current rest pose
         self.frame_id = ''
         self.frames = collections.OrderedDict()      # stamp ns -> (M, 3) float32, paired only
         self.pairer = StampPairer()      # registered points with their filtered cloud, by stamp
@@ -47,6 +53,7 @@ class AccumulatorNode(Node):
         self._extracted_once = False
         self._busy = False
         self.extractions = 0
+        self.published = 0
         self.create_subscription(PointCloud2, 'rest_points', self._on_rest, LATCHED_QOS)
         self.create_subscription(PointCloud2, 'registered_points', self._on_registered, STREAM_QOS)
         self.create_subscription(PointCloud2, 'filtered_points', self._on_filtered, STREAM_QOS)
@@ -66,9 +73,10 @@ class AccumulatorNode(Node):
             for stamp in old:
                 del self.frames[stamp]
             self.rest, self.rest_stamp, self.frame_id = rest, rest_stamp, msg.header.frame_id
+            self.growth = SkeletonGrowth(rest, self.params)
             self._since_extraction = len(self.frames)
             self._extracted_once = False
-        self.get_logger().info(f'new rest pose ({len(rest)} points); window restarted'
+        self.get_logger().info(f'new rest pose ({len(rest)} points); window and skeleton restarted'
                                + (f', {len(old)} frames of the previous rest pose dropped' if old else ''))
 
     def _on_filtered(self, msg: PointCloud2) -> None:
@@ -130,17 +138,17 @@ class AccumulatorNode(Node):
             self._busy = True
             stamps = list(self.frames)
             window = np.stack([self.frames[s] for s in stamps])
-            rest, rest_stamp, frame_id = self.rest, self.rest_stamp, self.frame_id
+            growth, rest_stamp, frame_id = self.growth, self.rest_stamp, self.frame_id
             self._since_extraction = 0
             self._extracted_once = True
-        threading.Thread(target=self._extract, args=(rest, rest_stamp, frame_id, stamps, window, reason),
+        threading.Thread(target=self._extract, args=(growth, rest_stamp, frame_id, stamps, window, reason),
                          name='structure', daemon=True).start()
         return True
 
-    def _extract(self, rest, rest_stamp, frame_id, stamps, window, reason) -> None:
+    def _extract(self, growth, rest_stamp, frame_id, stamps, window, reason) -> None:
         started = time.perf_counter()
         try:
-            structure = extract_structure(rest, window, self.params)
+            update = growth.update(np.array(stamps, dtype=np.int64), window)
         except StructureError as error:
             retry = '' if self.sliding else f'; trying again on the next {self.window_size} frames'
             self.get_logger().warning(f'no skeleton from {len(stamps)} frames: {error}{retry}')
@@ -153,11 +161,21 @@ class AccumulatorNode(Node):
         finally:
             with self._lock:
                 self._busy = False
-        document = structure_document(structure, rest_stamp, stamps, frame_id)
-        self.structure_pub.publish(String(data=json.dumps(document)))
+        structure = update.structure
         self.extractions += 1
+        seconds = time.perf_counter() - started
+        if not update.changed:
+            self.get_logger().info(f'skeletal structure ({reason}): unchanged, {structure.n_bones} bones '
+                                   f'from {len(update.key_stamps)} key frames in {seconds:.1f} s')
+            return
+        document = structure_document(structure, rest_stamp, update.key_stamps, frame_id, update.joint_ids,
+                                      update.changes)
+        self.structure_pub.publish(String(data=json.dumps(document)))
+        self.published += 1
+        changes = '; '.join(f'{kind} {", ".join(names)}' for kind, names in update.changes.items() if names)
         self.get_logger().info(f'skeletal structure ({reason}): {structure.n_bones} bones from '
-                               f'{len(stamps)} frames in {time.perf_counter() - started:.1f} s')
+                               f'{len(update.key_stamps)} key frames in {seconds:.1f} s'
+                               + (f'; {changes}' if changes else ''))
 
 
 def main(args=None) -> int:

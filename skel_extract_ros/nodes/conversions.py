@@ -50,8 +50,12 @@ def cloud_message(points: np.ndarray, header: Header, float64: bool = False) -> 
     return msg
 
 
-def structure_document(structure: SkeletalStructure, rest_stamp_ns: int, window_stamps_ns, frame_id: str) -> dict:
-    """The skeleton/structure JSON: bones, bone tree, per-point labels, window stamps."""
+def structure_document(structure: SkeletalStructure, rest_stamp_ns: int, window_stamps_ns, frame_id: str,
+                       joint_ids=None, changes: dict | None = None) -> dict:
+    """The skeleton/structure JSON: bones, bone tree, per-point labels, the stamps of the
+    frames it was learned on (a growing skeleton's key frames), stable joint ids (default
+    0..B-1) and what changed since the previous one (core.growth)."""
+    joint_ids = range(structure.n_bones) if joint_ids is None else joint_ids
     return {
         'version': STRUCTURE_VERSION,
         'frame_id': frame_id,
@@ -63,6 +67,8 @@ def structure_document(structure: SkeletalStructure, rest_stamp_ns: int, window_
         'labels': [int(label) for label in structure.labels],
         'joints': structure.joints.tolist(),
         'boundary_centroids': structure.boundary_centroids.tolist(),
+        'joint_ids': [int(i) for i in joint_ids],
+        'changes': changes or {},
     }
 
 
@@ -87,6 +93,11 @@ def parse_structure(text: str) -> dict:
         B = len(document['parents'])
         if len(document['joints']) != B or len(document['boundary_centroids']) != B:
             raise ValueError('joints / boundary_centroids do not match the bone count')
+        document['joint_ids'] = np.asarray(document.get('joint_ids', np.arange(B)), dtype=np.int64)
+        if len(document['joint_ids']) != B or len(set(document['joint_ids'].tolist())) != B:
+            raise ValueError('joint_ids must be one distinct id per bone')
+        if not isinstance(document.setdefault('changes', {}), dict):
+            raise TypeError('changes must be an object')
         if len(document['labels']) and (document['labels'].min() < 0 or document['labels'].max() >= B):
             raise ValueError('labels out of range')
         return document
@@ -94,12 +105,15 @@ def parse_structure(text: str) -> dict:
         raise ValueError(f'malformed skeleton/structure message: {error}') from None
 
 
-def description_document(model: SkeletonModel, frame_id: str, window_stamps_ns) -> dict:
-    """The skeleton/description JSON: joint_names, parents, rest_positions (+ frame, window)."""
+def description_document(model: SkeletonModel, frame_id: str, window_stamps_ns, changes: dict | None = None) -> dict:
+    """The skeleton/description JSON: joint_names (stable across updates), parents,
+    rest_positions, frame, the frames it was learned on, and what changed since the
+    previous description (joint names added / removed / reparented / moved)."""
     return {'frame_id': frame_id, 'joint_names': model.joint_names,
             'parents': [int(p) for p in model.parents],
             'rest_positions': np.round(model.rest_joints, 6).tolist(),
-            'window_stamps_ns': [int(s) for s in window_stamps_ns]}
+            'window_stamps_ns': [int(s) for s in window_stamps_ns],
+            'changes': changes or {}}
 
 
 def pose_array(positions: np.ndarray, header: Header) -> PoseArray:

@@ -9,7 +9,9 @@ Publishes   skeleton/description (std_msgs/String JSON, transient local): joint_
             index; LINE_LIST of bones; input header)
 
 On a structure: Alg. 2 on the window's frames (found by stamp in a buffer of
-`buffer_size` frames) on its own thread, then joints and markers for every window frame.
+`buffer_size` frames, or among the previous structure's frames, which are kept: a growing
+skeleton's key frames can be older than the buffer) on its own thread, then joints and
+markers for every window frame. Joint names carry the structure's stable joint ids.
 After that, every new registered frame gets the learned LBS model fitted to it
 (core.live) and its joints published: frames that arrived while Alg. 2 ran are caught
 up, none is skipped.
@@ -54,6 +56,7 @@ class JointEstimationNode(Node):
         self._lock = threading.Lock()
         self.rest, self.rest_stamp = None, None
         self.buffer = collections.OrderedDict()   # stamp ns -> (header, registered (M, 3), filtered (N, 3))
+        self.kept = {}                            # the last structure's frames, by stamp, kept past the buffer
         self.pairer = StampPairer()
         self.registered_only = collections.OrderedDict()  # stamp -> (header, registered): live input
         self.tracker = None
@@ -78,7 +81,7 @@ class JointEstimationNode(Node):
         with self._lock:
             self.rest, self.rest_stamp = rest, rest_stamp
             # frames of this rest pose may have come in before it (two topics, no order)
-            for frames in (self.buffer, self.registered_only):
+            for frames in (self.buffer, self.registered_only, self.kept):
                 for stamp in [s for s in frames if s < rest_stamp]:
                     del frames[stamp]
             had_model = self.tracker is not None
@@ -138,7 +141,8 @@ class JointEstimationNode(Node):
                                            f'the rest pose has {len(self.rest)}: ignored')
                 return
             wanted = document['window_stamps_ns']
-            found = [s for s in wanted if s in self.buffer]
+            available = {**self.kept, **self.buffer}
+            found = [s for s in wanted if s in available]
             if len(found) < len(wanted):
                 self.get_logger().warning(f'{len(wanted) - len(found)} of the {len(wanted)} window frames '
                                           f'are not in the buffer (buffer_size {self.buffer_size}); '
@@ -152,7 +156,8 @@ class JointEstimationNode(Node):
                 self.get_logger().info('joint estimation running: the new structure is queued')
                 return
             self._busy = True
-            frames = [self.buffer[s] for s in found]
+            frames = [available[s] for s in found]
+            self.kept = dict(zip(found, frames))
             rest = self.rest
         threading.Thread(target=self._estimate, args=(document, rest, found, frames), name='joints',
                          daemon=True).start()
@@ -168,13 +173,13 @@ class JointEstimationNode(Node):
                                           document['boundary_centroids'])
             estimate = JointEstimation(self.params).fit(rest, registered, observed, structure)
             model = SkeletonModel(rest, labels, estimate.parents, estimate.joints, estimate.influences,
-                                  estimate.weights)
+                                  estimate.weights, document['joint_ids'])
             tracker = LiveJointTracker(model, self.params, self.live_sweeps)
         except Exception as error:  # keep serving with the previous model
             self.get_logger().error(f'joint estimation failed: {type(error).__name__}: {error}')
             self._finish_estimation()
             return
-        description = description_document(model, document['frame_id'], stamps)
+        description = description_document(model, document['frame_id'], stamps, document['changes'])
         self.description_pub.publish(String(data=json.dumps(description)))
         for (header, _, _), positions in zip(frames, estimate.joint_trajectories()):
             self._publish_joints(header, positions, model.parents)

@@ -15,15 +15,19 @@ class MotionSpec:
 
     Arrays are (B, 3, 2): bone, local axis, harmonic. Frequencies are in Hz, phases in
     radians. `root_*` arrays are (3, 2) for the root's sway in translation and rotation.
+    one_limb_at_a_time: the limbs (see `limb_groups`) take turns: the sequence is cut into
+    as many equal slots as there are limbs and in each only one limb moves (the root keeps
+    swaying), the way a person waves one arm, then the other, then steps.
     """
 
     frequencies: np.ndarray
     phases: np.ndarray
     root_frequencies: np.ndarray
     root_phases: np.ndarray
+    one_limb_at_a_time: bool = False
 
 
-def make_motion(subject: Subject, seed: int) -> MotionSpec:
+def make_motion(subject: Subject, seed: int, one_limb_at_a_time: bool = False) -> MotionSpec:
     """Draw a repeatable motion for `subject`.
 
     Frequencies lie in 0.5-1.0 Hz so that even a 1 s window sees every joint move a
@@ -35,7 +39,7 @@ def make_motion(subject: Subject, seed: int) -> MotionSpec:
     phases = rng.uniform(0.0, 2.0 * np.pi, size=(n_bones, 3, 2))
     root_frequencies = rng.uniform(0.2, 0.5, size=(2, 3, 2))
     root_phases = rng.uniform(0.0, 2.0 * np.pi, size=(2, 3, 2))
-    return MotionSpec(frequencies, phases, root_frequencies, root_phases)
+    return MotionSpec(frequencies, phases, root_frequencies, root_phases, one_limb_at_a_time)
 
 
 def _two_sines(times: np.ndarray, frequencies: np.ndarray, phases: np.ndarray) -> np.ndarray:
@@ -44,11 +48,47 @@ def _two_sines(times: np.ndarray, frequencies: np.ndarray, phases: np.ndarray) -
     return 0.7 * np.sin(arg[..., 0]) + 0.3 * np.sin(arg[..., 1])
 
 
+def limb_groups(subject: Subject) -> np.ndarray:
+    """(B,) the limb of each bone: the bone below the nearest branching of the tree above it
+    (an arm hangs on the chest with the head beside it: arm and head are limbs; a chain
+    without branches is one limb); -1 for the root."""
+    parents = np.array([b.parent for b in subject.bones])
+    children = np.bincount(parents[parents >= 0], minlength=len(parents))
+    groups = np.full(len(parents), -1)
+    for b in range(len(parents)):    # a loop over bones (tens)
+        top = b
+        while parents[top] >= 0 and parents[parents[top]] >= 0 and children[parents[top]] < 2:
+            top = parents[top]
+        groups[b] = -1 if parents[b] < 0 else top
+    return groups
+
+
+def limb_activity(subject: Subject, times: np.ndarray) -> np.ndarray:
+    """(F, B) in [0, 1]: how much each bone moves at `times` when the limbs take turns (each
+    limb's slot fades in and out over a tenth of it; the root always moves)."""
+    groups = limb_groups(subject)
+    limbs = np.unique(groups[groups >= 0])
+    activity = np.ones((len(times), len(groups)))
+    if not len(limbs):
+        return activity
+    span = max(float(times[-1] - times[0]), 1e-9) * (1.0 + 1.0 / max(len(times) - 1, 1))
+    slot = span / len(limbs)
+    position = (times - times[0])[:, None] / slot - np.arange(len(limbs))[None, :]   # (F, L), 0..1 in its slot
+    ramp = np.clip(np.minimum(position, 1.0 - position) / 0.1, 0.0, 1.0)
+    envelope = ramp * ramp * (3.0 - 2.0 * ramp)
+    for index, limb in enumerate(limbs):   # a loop over limbs
+        activity[:, groups == limb] = envelope[:, index:index + 1]
+    return activity
+
+
 def joint_angles(subject: Subject, motion: MotionSpec, times: np.ndarray) -> np.ndarray:
     """(F, B, 3) local rotation angles (radians, about bone-local x, y, z) at `times` (s)."""
     center = np.array([b.dof_center for b in subject.bones], dtype=np.float64)
     amplitude = np.array([b.dof_amplitude for b in subject.bones], dtype=np.float64)
-    return center + amplitude * _two_sines(times, motion.frequencies, motion.phases)
+    motion_part = amplitude * _two_sines(times, motion.frequencies, motion.phases)
+    if motion.one_limb_at_a_time:
+        motion_part = motion_part * limb_activity(subject, times)[:, :, None]
+    return center + motion_part
 
 
 def bone_transforms(subject: Subject, motion: MotionSpec, times: np.ndarray) -> np.ndarray:

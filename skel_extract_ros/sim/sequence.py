@@ -49,16 +49,17 @@ def _placement(subject: Subject, rng: np.random.Generator) -> np.ndarray:
 def generate_sequence(subject_name: str, frames: int, resolution: str = '320x240',
                       noise: NoiseModel | None = None, scene: str = 'empty', seed: int = 0,
                       surface_samples: int = 4000, enter_frames: int = 0,
-                      progress: bool = True) -> SimulatedSequence:
+                      progress: bool = True, one_limb_at_a_time: bool = False) -> SimulatedSequence:
     """Render `frames` frames of a built-in subject in seeded motion through a virtual depth
-    camera (see `render.render_body` for the ground truth)."""
+    camera (see `render.render_body` for the ground truth); one_limb_at_a_time: the limbs
+    take turns (motion.MotionSpec)."""
     if frames < 1:
         raise ValueError(f'frames must be at least 1, got {frames}')
     subject = make_subject(subject_name)
     intrinsics = Intrinsics.from_resolution(resolution)
     noise = NoiseModel.kinect() if noise is None else noise
     rng = np.random.default_rng(seed)
-    motion = make_motion(subject, seed)
+    motion = make_motion(subject, seed, one_limb_at_a_time)
     placement = _placement(subject, rng)
     body = subject_body(subject, motion, placement, frames)
     target = np.asarray(subject.camera_target, float)
