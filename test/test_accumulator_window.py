@@ -138,6 +138,40 @@ def test_joint_node_buffer_overflow_keeps_the_newest_frames(ros):
         assert np.linalg.norm(positions - joint_path[i], axis=1).min() < 2.7e-3
 
 
+def test_joint_node_follows_a_growing_structure_with_old_key_frames_and_stable_names(ros):
+    """Structure 1 on frames 0-7, then 8 more frames push 0-7 out of a buffer of 8; structure
+    2 (grown: key frames from both halves) is still estimated on all its frames (the previous
+    structure's are kept), its names carry the joint ids, its description says what changed,
+    and no frame gets joints twice."""
+    rest, registered, _, _, _ = two_bone_sequence(n_frames=16)
+    node = ros.add(JointEstimationNode, parameter_overrides=[Parameter('buffer_size', value=8)])
+    joints = ros.listen('skeleton/joints', PoseArray, STREAM_QOS)
+    descriptions = ros.listen('skeleton/description', String, LATCHED_QOS)
+    publish_rest(ros, rest)
+    publish_frames(ros, registered[:8], 0)
+    ros.wait(lambda: len(node.buffer) == 8, what='the first 8 frames buffered')
+    pub = ros.publisher('skeleton/structure', String, LATCHED_QOS)
+
+    def grown(frames, ids, changes):
+        structure = extract_structure(rest, registered[frames], StructureParams(n_clusters=12))
+        return String(data=json.dumps(structure_document(structure, T0, [T0 + i * DT for i in frames],
+                                                         'camera_depth_optical_frame', ids, changes)))
+    pub.publish(grown(list(range(8)), [5, 9], {'added': ['joint_5', 'joint_9']}))
+    ros.wait(lambda: len(descriptions) == 1 and len(joints) == 8, what='the first description and joints')
+    first = json.loads(descriptions[0].data)
+    assert first['joint_names'] == ['joint_5', 'joint_9'] and first['changes']['added'] == ['joint_5', 'joint_9']
+    publish_frames(ros, registered[8:], 8)
+    ros.wait(lambda: len(joints) == 16 and min(node.buffer) == T0 + 8 * DT, what='live joints, 0-7 out of the buffer')
+    key = [0, 2, 4, 6, 9, 11, 13, 15]
+    pub.publish(grown(key, [5, 9], {'moved': ['joint_9']}))
+    ros.wait(lambda: len(descriptions) == 2, what='the grown description')
+    second = json.loads(descriptions[1].data)
+    assert [(s - T0) // DT for s in second['window_stamps_ns']] == key
+    assert second['joint_names'] == ['joint_5', 'joint_9'] and second['changes'] == {'moved': ['joint_9']}
+    assert not any('not in the buffer' in line for line in ros.warnings('joint_estimation_node'))
+    assert sorted(stamps_of(joints)) == [T0 + i * DT for i in range(16)]   # none twice
+
+
 def test_frames_arriving_during_alg2_are_caught_up(ros, monkeypatch):
     """Frames 12-29 arrive while Alg. 2 runs on the window 0-11 (held until all of them are
     in, so the order is certain): when it ends they get live joints, no later frame needed

@@ -45,12 +45,12 @@ def test_replay_sample_bag_records_every_topic_and_matches_run(tmp_path, sample_
     check_sample_scores(json.loads(done.stdout))
     assert (out / 'skeleton.png').stat().st_size > 10_000
     # skeleton.bvh beside it, written as `run` writes it (test_bvh_export.py), read back by
-    # the simulator's BVH loader (bvhio): the same joints within 5 mm (as run's, test_bvh_export.py)
+    # the simulator's BVH loader (bvhio): the same joints within 8 mm (as run's, test_bvh_export.py)
     from skel_extract_ros.sim.bvh import load_bvh
     clip = load_bvh(out / 'skeleton.bvh')
     order = [clip.joint_names.index(name) for name in replayed['joint_names']]
     assert np.linalg.norm(clip.positions[:, order] - np.array([f['positions'] for f in replayed['frames']]),
-                          axis=2).max() < 5e-3
+                          axis=2).max() < 8e-3
 
 
 def test_replay_bad_input_is_one_line(tmp_path):

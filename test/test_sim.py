@@ -130,3 +130,30 @@ def test_640x480_intrinsics_and_back_projection():
 def test_unknown_subject_is_a_clear_error():
     with pytest.raises(ValueError, match='unknown subject'):
         make_subject('dragon')
+
+
+def test_one_limb_at_a_time_moves_each_limb_in_its_own_slot():
+    from skel_extract_ros.sim.motion import limb_activity, limb_groups
+    from skel_extract_ros.sim.subjects import make_subject
+    human = make_subject('human')
+    groups = limb_groups(human)
+    names = {bone.name: g for bone, g in zip(human.bones, groups)}
+    # an arm is one limb from shoulder to hand, apart from the other arm, the head and the legs
+    assert names['l_upper_arm'] == names['l_forearm'] == names['l_hand'] != names['r_upper_arm']
+    assert len({names['head'], names['l_upper_arm'], names['r_upper_arm'], names['l_thigh'], names['r_thigh']}) == 5
+    assert names['pelvis'] == -1
+    times = np.arange(300) / 30.0
+    activity = limb_activity(human, times)
+    limbs = np.unique(groups[groups >= 0])
+    per_limb = np.stack([activity[:, groups == limb].max(axis=1) for limb in limbs], axis=1)   # (F, L)
+    assert (activity[:, groups < 0] == 1).all()                 # the root always sways
+    assert (np.sum(per_limb > 0, axis=1) <= 1).all()             # never two limbs at once
+    assert (per_limb.max(axis=0) == 1).all()                     # every limb gets its full slot
+    # and the rendered motion follows: a leg bone does not turn while the arms have their turn
+    sequence = generate_sequence('human', 300, progress=False, one_limb_at_a_time=True, surface_samples=200)
+    transforms = sequence.ground_truth['bone_transforms'][:, :, :3, :3]
+    thigh, pelvis = human.bone_names.index('l_thigh'), 0
+    relative = np.einsum('fji,fjk->fik', transforms[:, pelvis], transforms[:, thigh])
+    idle = per_limb[:, list(limbs).index(names['l_thigh'])] == 0
+    assert np.ptp(relative[idle].reshape(idle.sum(), -1), axis=0).max() < 1e-5     # float32 ground truth
+    assert np.ptp(relative[~idle].reshape((~idle).sum(), -1), axis=0).max() > 0.2

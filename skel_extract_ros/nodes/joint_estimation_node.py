@@ -11,7 +11,8 @@ Publishes   skeleton/description (std_msgs/String JSON, transient local): joint_
 On a structure: Alg. 2 on the window's frames (found by stamp in a buffer of
 `buffer_size` frames, or among the previous structure's frames, which are kept: a growing
 skeleton's key frames can be older than the buffer) on its own thread, then joints and
-markers for every window frame. Joint names carry the structure's stable joint ids.
+markers for every window frame that has none yet. Joint names carry the structure's
+stable joint ids.
 After that, every new registered frame gets the learned LBS model fitted to it
 (core.live) and its joints published: frames that arrived while Alg. 2 ran are caught
 up, none is skipped.
@@ -181,8 +182,13 @@ class JointEstimationNode(Node):
             return
         description = description_document(model, document['frame_id'], stamps, document['changes'])
         self.description_pub.publish(String(data=json.dumps(description)))
-        for (header, _, _), positions in zip(frames, estimate.joint_trajectories()):
-            self._publish_joints(header, positions, model.parents)
+        with self._lock:
+            done = self.last_published
+        # a frame that already has joints (live, from the previous model) is not published
+        # twice: a growing skeleton's key frames can be minutes old
+        for stamp, (header, _, _), positions in zip(stamps, frames, estimate.joint_trajectories()):
+            if done is None or stamp > done:
+                self._publish_joints(header, positions, model.parents)
         with self._lock:
             self.tracker, self.model_parents = tracker, model.parents
             # sliding windows: frames after this window may have live joints from the
