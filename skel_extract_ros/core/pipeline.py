@@ -82,9 +82,8 @@ class SkeletonPipeline:
                    'registration': reg.times_.registration}
         observed = [reg.observed_[i] for i in frames]
         growth = SkeletonGrowth(rest, self.structure_params, self.joint_params)
-        growth.add_frames(frames, window, observed)
         started = time.perf_counter()
-        update = growth.update(np.empty(0, dtype=np.int64), np.empty((0,) + rest.shape), [])
+        update = growth.update(frames, window, observed)       # frame indices serve as stamps
         seconds['structure'] = growth.seconds_['structure']
         seconds['joints'] = growth.seconds_['joints']
         structure, estimate = update.structure, update.estimate
@@ -101,6 +100,7 @@ class SkeletonPipeline:
         if len(others):
             tracker = LiveJointTracker(model, self.joint_params)
             joint_positions[others] = np.stack([tracker.track(window[i]) for i in others])
+        # the rest: choosing the key frames, the Step 2 fits and the live fits of the others
         seconds['live'] = time.perf_counter() - started - seconds['structure'] - seconds['joints']
         return PipelineResult(registered, statuses, frames, structure, estimate, model, step2, joint_positions,
                               observed, seconds, frames[key])
