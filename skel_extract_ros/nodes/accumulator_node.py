@@ -10,7 +10,9 @@ Service     ~/extract (std_srvs/Trigger): extract now from the frames collected 
 Every window (and with `sliding`, every `stride` frames after it) goes into one growing
 skeleton (core.growth): the structure is learned on the most different poses seen so far,
 so a joint appears once its part has moved and stays; it is published again only when it
-changed. Extraction runs on its own thread so the subscriptions keep collecting meanwhile.
+changed. Extraction runs on a Worker (nodes/worker.py) so the subscriptions keep collecting
+meanwhile; a window that comes due during an extraction waits for it (a newer one
+replaces it).
 """
 from __future__ import annotations
 
@@ -31,6 +33,7 @@ from ..params import structure_params_from_dict
 from .common import (LATCHED_QOS, STREAM_QOS, StampPairer, ThrottledLog, declare_node_parameters,
                      decode_or_warn, decode_registered_or_warn, run_node)
 from .conversions import stamp_ns, structure_document
+from .worker import Worker
 
 SECTION = 'accumulator_node'
 
@@ -51,7 +54,8 @@ class AccumulatorNode(Node):
         self.pairer = StampPairer()      # registered points with their filtered cloud, by stamp
         self._since_extraction = 0
         self._extracted_once = False
-        self._busy = False
+        self.extractor = Worker(lambda job: self._extract(*job), 'structure', capacity=1,
+                                on_error=self._extraction_failed)
         self.extractions = 0
         self.published = 0
         self.create_subscription(PointCloud2, 'rest_points', self._on_rest, LATCHED_QOS)
@@ -113,8 +117,8 @@ class AccumulatorNode(Node):
     # -- extraction ------------------------------------------------------------------------
     def _on_extract(self, _request, response):
         with self._lock:
-            n, newest, busy = len(self.frames), next(reversed(self.frames), 0), self._busy
-        if busy:   # the running extraction answers the request
+            n, newest = len(self.frames), next(reversed(self.frames), 0)
+        if not self.extractor.idle:   # the running extraction answers the request
             response.success, response.message = True, 'an extraction is running; its result will be published'
         elif n < 2 or self.rest is None:
             response.success = False
@@ -131,19 +135,19 @@ class AccumulatorNode(Node):
                 self.log.warn('no_rest', f'{len(self.frames)} registered frames but no rest_points yet '
                                          '(is the registration_node running in the same namespace?)')
                 return False
-            if self._busy:
-                self.log.warn('busy', f'extraction still running; {reason} trigger skipped '
-                                      f'({len(self.frames)} frames waiting)')
-                return False
-            self._busy = True
             stamps = list(self.frames)
             window = np.stack([self.frames[s] for s in stamps])
             growth, rest_stamp, frame_id = self.growth, self.rest_stamp, self.frame_id
             self._since_extraction = 0
             self._extracted_once = True
-        threading.Thread(target=self._extract, args=(growth, rest_stamp, frame_id, stamps, window, reason),
-                         name='structure', daemon=True).start()
+        if not self.extractor.idle:
+            self.get_logger().info(f'extraction running: the {reason} window of {len(stamps)} frames waits '
+                                   '(a newer one replaces it)')
+        self.extractor.submit((growth, rest_stamp, frame_id, stamps, window, reason))
         return True
+
+    def _extraction_failed(self, _job, error) -> None:
+        self.get_logger().error(f'structure extraction failed: {type(error).__name__}: {error}')
 
     def _extract(self, growth, rest_stamp, frame_id, stamps, window, reason) -> None:
         started = time.perf_counter()
@@ -155,12 +159,6 @@ class AccumulatorNode(Node):
             with self._lock:
                 self._extracted_once = self.sliding and self._extracted_once
             return
-        except Exception as error:  # keep serving
-            self.get_logger().error(f'structure extraction failed: {type(error).__name__}: {error}')
-            return
-        finally:
-            with self._lock:
-                self._busy = False
         structure = update.structure
         self.extractions += 1
         seconds = time.perf_counter() - started
@@ -176,6 +174,11 @@ class AccumulatorNode(Node):
         self.get_logger().info(f'skeletal structure ({reason}): {structure.n_bones} bones from '
                                f'{len(update.key_stamps)} key frames in {seconds:.1f} s'
                                + (f'; {changes}' if changes else ''))
+
+
+    def destroy_node(self):
+        self.extractor.stop()
+        return super().destroy_node()
 
 
 def main(args=None) -> int:

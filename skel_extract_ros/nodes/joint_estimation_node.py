@@ -10,7 +10,8 @@ Publishes   skeleton/description (std_msgs/String JSON, transient local): joint_
 
 On a structure: Alg. 2 on the window's frames (found by stamp in a buffer of
 `buffer_size` frames, or among the previous structure's frames, which are kept: a growing
-skeleton's key frames can be older than the buffer) on its own thread, then joints and
+skeleton's key frames can be older than the buffer) on a Worker (nodes/worker.py: one at
+a time; a structure that arrives meanwhile waits, a newer one replaces it), then joints and
 markers for every window frame that has none yet. Joint names carry the structure's
 stable joint ids.
 After that, every new registered frame gets the learned LBS model fitted to it
@@ -40,6 +41,7 @@ from ..params import joint_params_from_dict
 from .common import (LATCHED_QOS, STREAM_QOS, StampPairer, ThrottledLog, declare_node_parameters,
                      decode_or_warn, decode_registered_or_warn, run_node)
 from .conversions import description_document, parse_structure, pose_array, skeleton_markers, stamp_ns
+from .worker import Worker
 
 SECTION = 'joint_estimation_node'
 
@@ -63,9 +65,8 @@ class JointEstimationNode(Node):
         self.tracker = None
         self.model_parents = None
         self.last_published = None           # stamp of the newest frame with joints published
-        self._busy = False
-        self._pending_structure = None
         self._early_structure = None
+        self.estimator = Worker(self._estimate, 'joints', capacity=1, on_error=self._estimation_failed)
         self.live_ms = collections.deque(maxlen=10_000)
         self.create_subscription(PointCloud2, 'rest_points', self._on_rest, LATCHED_QOS)
         self.create_subscription(PointCloud2, 'registered_points', self._on_registered, STREAM_QOS)
@@ -151,35 +152,35 @@ class JointEstimationNode(Node):
             if len(found) < 2:
                 self.get_logger().warning('fewer than 2 window frames available: structure ignored')
                 return
-            if self._busy:
-                # the newest structure wins; it runs when the current estimation ends
-                self._pending_structure = msg
-                self.get_logger().info('joint estimation running: the new structure is queued')
-                return
-            self._busy = True
             frames = [available[s] for s in found]
             self.kept = dict(zip(found, frames))
             rest = self.rest
-        threading.Thread(target=self._estimate, args=(document, rest, found, frames), name='joints',
-                         daemon=True).start()
+        if not self.estimator.idle:
+            self.get_logger().info('joint estimation running: the new structure waits (a newer one replaces it)')
+        self.estimator.submit((document, rest, found, frames))
 
-    def _estimate(self, document, rest, stamps, frames) -> None:
+    @property
+    def estimating(self) -> bool:
+        """Alg. 2 is running or a structure waits for it."""
+        return not self.estimator.idle
+
+    def _estimation_failed(self, _job, error) -> None:
+        self.get_logger().error(f'joint estimation failed: {type(error).__name__}: {error} '
+                                '(serving the previous model)')
+
+    def _estimate(self, job) -> None:
+        document, rest, stamps, frames = job
         started = time.perf_counter()
-        try:
-            registered = np.stack([f[1] for f in frames]).astype(np.float64)
-            observed = [f[2] for f in frames]
-            labels, parents = document['labels'], document['parents']
-            rotations, translations = fit_rigid_segments(rest, registered, labels, len(parents))
-            structure = SkeletalStructure(labels, parents, rotations, translations, document['joints'],
-                                          document['boundary_centroids'])
-            estimate = JointEstimation(self.params).fit(rest, registered, observed, structure)
-            model = SkeletonModel(rest, labels, estimate.parents, estimate.joints, estimate.influences,
-                                  estimate.weights, document['joint_ids'])
-            tracker = LiveJointTracker(model, self.params, self.live_sweeps)
-        except Exception as error:  # keep serving with the previous model
-            self.get_logger().error(f'joint estimation failed: {type(error).__name__}: {error}')
-            self._finish_estimation()
-            return
+        registered = np.stack([f[1] for f in frames]).astype(np.float64)
+        observed = [f[2] for f in frames]
+        labels, parents = document['labels'], document['parents']
+        rotations, translations = fit_rigid_segments(rest, registered, labels, len(parents))
+        structure = SkeletalStructure(labels, parents, rotations, translations, document['joints'],
+                                      document['boundary_centroids'])
+        estimate = JointEstimation(self.params).fit(rest, registered, observed, structure)
+        model = SkeletonModel(rest, labels, estimate.parents, estimate.joints, estimate.influences,
+                              estimate.weights, document['joint_ids'])
+        tracker = LiveJointTracker(model, self.params, self.live_sweeps)
         description = description_document(model, document['frame_id'], stamps, document['changes'])
         self.description_pub.publish(String(data=json.dumps(description)))
         with self._lock:
@@ -197,14 +198,6 @@ class JointEstimationNode(Node):
         self.get_logger().info(f'{model.n_joints} joints from {len(stamps)} frames in '
                                f'{time.perf_counter() - started:.1f} s; publishing live joints')
         self._publish_live()
-        self._finish_estimation()
-
-    def _finish_estimation(self) -> None:
-        with self._lock:
-            self._busy = False
-            pending, self._pending_structure = self._pending_structure, None
-        if pending is not None:
-            self._on_structure(pending)
 
     # -- live --------------------------------------------------------------------------------
     def _publish_live(self) -> None:
@@ -225,6 +218,10 @@ class JointEstimationNode(Node):
     def _publish_joints(self, header, positions, parents) -> None:
         self.joints_pub.publish(pose_array(positions, header))
         self.markers_pub.publish(skeleton_markers(positions, parents, header, self.joint_diameter))
+
+    def destroy_node(self):
+        self.estimator.stop()
+        return super().destroy_node()
 
 
 def main(args=None) -> int:

@@ -18,14 +18,11 @@ region that moves, is preprocessed, published on filtered_points and registered;
 pose waits until the subject is wholly in view.
 
 Registration takes longer than a camera frame, so clouds are taken off the executor by
-a cheap callback into a queue of `queue_size` and processed by one worker thread; when
-the queue is full the oldest cloud is skipped, counted and reported.
+a cheap callback and processed by one Worker (nodes/worker.py) holding at most
+`queue_size` waiting clouds; when it is full the oldest cloud is skipped, counted and
+reported.
 """
 from __future__ import annotations
-
-import collections
-import threading
-import time
 
 import numpy as np
 from rclpy.node import Node
@@ -43,6 +40,7 @@ from ..pointcloud import CloudDecodeError, decode_xyz
 from .common import (LATCHED_QOS, SENSOR_QOS, STREAM_QOS, ParameterError, ThrottledLog, declare,
                      declare_dataclass, run_node)
 from .conversions import cloud_message, stamp_ns
+from .worker import Worker
 
 SECTION = 'registration_node'
 
@@ -73,17 +71,11 @@ class RegistrationNode(Node):
         self.rest_pub = self.create_publisher(PointCloud2, 'rest_points', LATCHED_QOS)
         self.create_service(Trigger, '~/reset', self._on_reset)
         self.create_service(Trigger, '~/reset_background', self._on_reset_background)
+        # set by the services, acted on by the worker before its next cloud
         self._background_reset_requested = False
-        self._queue = collections.deque()
-        self._wake = threading.Condition()
-        self._stopping = False
         self._reset_requested = False
-        self.skipped = 0
-        self.latencies_ms = collections.deque(maxlen=10_000)
-        self.processed = 0
         self._start_over()
-        self._worker = threading.Thread(target=self._work, name='registration', daemon=True)
-        self._worker.start()
+        self.worker = Worker(self._work, 'registration', capacity=self.queue_size, on_error=self._failed)
         # best effort matches every driver; reliable (for bag replay) never loses a
         # fragmented megabyte cloud to a full socket buffer, but needs a reliable publisher
         qos = SENSOR_QOS if reliability == 'best_effort' else STREAM_QOS
@@ -105,30 +97,31 @@ class RegistrationNode(Node):
 
     def _on_cloud(self, msg) -> None:
         """A PointCloud2, or a depth Image (queued with the camera info it goes with)."""
-        with self._wake:
-            self._queue.append((time.perf_counter(), (msg, self.camera_info)))
-            dropped = 0
-            while len(self._queue) > self.queue_size:
-                self._queue.popleft()
-                dropped += 1
-            self.skipped += dropped
-            self._wake.notify()
-        if dropped:
-            self.log.warn('skipped', f'registration is slower than the input: {self.skipped} cloud(s) '
+        if self.worker.submit((msg, self.camera_info)):
+            stats = self.worker.stats()
+            self.log.warn('skipped', f'registration is slower than the input: {stats["dropped"]} cloud(s) '
                                      f'skipped so far (queue_size {self.queue_size}; median '
-                                     f'{self._median_ms():.0f} ms per frame)')
+                                     f'{stats["latency_ms_median"]:.0f} ms per frame)')
+
+    @property
+    def skipped(self) -> int:
+        """Clouds dropped unprocessed because the queue was full."""
+        return self.worker.dropped
+
+    @property
+    def processed(self) -> int:
+        """Clouds the worker has handled (registered or not)."""
+        return self.worker.processed
 
     def _on_reset(self, _request, response):
-        with self._wake:
-            self._reset_requested = True
+        self._reset_requested = True
         response.success = True
         response.message = 'the rest pose will be rebuilt from the next good cloud'
         self.get_logger().info('reset requested: ' + response.message)
         return response
 
     def _on_reset_background(self, request, response):
-        with self._wake:
-            self._background_reset_requested = True
+        self._background_reset_requested = True
         response.success = True
         response.message = 'the scene is learned again from the next cloud (planes, motion, subject)'
         self.get_logger().info('background reset requested')
@@ -144,35 +137,25 @@ class RegistrationNode(Node):
         self.last_stamp = None
         self.frame_id = None
 
-    def _median_ms(self) -> float:
-        return float(np.median(self.latencies_ms)) if self.latencies_ms else float('nan')
+    def _work(self, item) -> None:
+        msg, info = item
+        if self._reset_requested:
+            self._reset_requested = False
+            self._start_over()
+        if self._background_reset_requested:
+            self._background_reset_requested = False
+            self.segmenter.reset()
+        self._process(msg, info)
+        if (self.worker.processed + 1) % 100 == 0:
+            stats = self.worker.stats()
+            self.get_logger().info(f'{self.worker.processed + 1} clouds processed, latency median '
+                                   f'{stats["latency_ms_median"]:.0f} ms, p95 {stats["latency_ms_p95"]:.0f} ms, '
+                                   f'{stats["dropped"]} skipped')
 
-    def _work(self) -> None:
-        while True:
-            with self._wake:
-                while not self._queue and not self._stopping:
-                    self._wake.wait()
-                if self._stopping:
-                    return
-                received, (msg, info) = self._queue.popleft()
-                if self._reset_requested:
-                    self._reset_requested = False
-                    self._start_over()
-                if self._background_reset_requested:
-                    self._background_reset_requested = False
-                    self.segmenter.reset()
-            try:
-                self._process(msg, info)
-            except Exception as error:  # never let one bad cloud end the node
-                self.log.warn('failed', f'cloud at {stamp_ns(msg.header) * 1e-9:.3f} s failed: '
-                                        f'{type(error).__name__}: {error}')
-                continue
-            self.latencies_ms.append(1000.0 * (time.perf_counter() - received))
-            self.processed += 1
-            if self.processed % 100 == 0:
-                self.get_logger().info(f'{self.processed} clouds processed, latency median '
-                                       f'{self._median_ms():.0f} ms, worst {max(self.latencies_ms):.0f} ms, '
-                                       f'{self.skipped} skipped')
+    def _failed(self, item, error) -> None:
+        """A cloud whose processing raised: one throttled line, the node goes on."""
+        self.log.warn('failed', f'cloud at {stamp_ns(item[0].header) * 1e-9:.3f} s failed: '
+                                f'{type(error).__name__}: {error}')
 
     def _decode(self, msg, info) -> tuple:
         """(points (H*W, 3), height, width) of a cloud or a depth image, or None (warned)."""
@@ -258,10 +241,7 @@ class RegistrationNode(Node):
         self.registered_pub.publish(cloud_message(result.points, msg.header))
 
     def destroy_node(self):
-        with self._wake:
-            self._stopping = True
-            self._wake.notify()
-        self._worker.join(timeout=10.0)
+        self.worker.stop()
         return super().destroy_node()
 
 

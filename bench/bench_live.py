@@ -1,0 +1,139 @@
+"""Live joints without registration: the learned skeleton fitted to every camera frame's
+observed subject points (core.live.ArticulatedTracker), against the offline joints.
+
+    python bench/bench_live.py [--only wave,punch] [--scenes empty,room] [--frames 90]
+                               [--iterations 5] [--sweeps 1] [--lag 3] [--work DIR]
+
+For each real clip (../shared/data, as bench_real_motion.py): simulate the bag (kept in
+--work and reused), learn the skeleton as `skel-extract run` does (SkeletonPipeline:
+registration, Steps 2-3 on the key frames), then seed the live tracker with the learned
+model's fit of the first learned frame and track every later frame from its observed
+points alone; when it reports a frame lost it is re-seeded from the registered frame
+`--lag` frames earlier (what a node has when the registration runs at a third of the camera
+rate). Printed per row: live vs offline joints on the same frames (median, p95, on Alg. 2's
+key frames and on all), the same for simply holding the offline joints of `--lag` frames
+earlier (what waiting for the registration gives), the ground-truth scores, the re-seeds
+and the per-frame fit time (median, p95; nothing else may run while timing).
+"""
+from __future__ import annotations
+
+import argparse
+import itertools
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / 'bench'))
+
+from bench_real_motion import CLI, subjects  # noqa: E402
+
+from skel_extract_ros.bag import read_cloud_frames, select_cloud_topic  # noqa: E402
+from skel_extract_ros.core.live import ArticulatedTracker, LiveJointTracker  # noqa: E402
+from skel_extract_ros.core.pipeline import SkeletonPipeline  # noqa: E402
+from skel_extract_ros.evaluation import GroundTruth, PredictedSkeleton, evaluate_joints  # noqa: E402
+
+
+def simulated_bag(name, source_args, scene, frames, work: Path) -> Path:
+    bag = work / f'{name}_{scene}'
+    if not (bag / 'gt.npz').is_file():
+        done = subprocess.run([CLI, 'simulate', *source_args, '--frames', str(frames), '--scene', scene,
+                               '--out', str(bag)], capture_output=True, text=True)
+        if done.returncode != 0:
+            raise RuntimeError(f'simulate {name}: {done.stderr.strip()[-300:]}')
+    return bag
+
+
+def live_row(bag: Path, iterations: int, sweeps: int, lag: int) -> dict:
+    topic = select_cloud_topic(bag, None)
+    stamps, clouds = [], []
+    for frame in read_cloud_frames(bag, topic):
+        stamps.append(frame.stamp)
+        clouds.append(frame.points.reshape(frame.height, frame.width, 3) if frame.height > 1 else frame.points)
+    pipeline = SkeletonPipeline()
+    registered = pipeline.register(clouds)
+    result = pipeline.extract(registered)
+    model, frames = result.model, result.frames
+    observed = pipeline.registration.observed_
+    params = pipeline.joint_params
+    registered_fit = LiveJointTracker(model, params)
+    tracker = ArticulatedTracker(model, params, sweeps=sweeps, iterations=iterations)
+    tracker.seed(*registered_fit.fit(registered[frames[0]]))
+    live = np.full((len(clouds), model.n_joints, 3), np.nan)
+    seconds, reseeds = [], 0
+    for index in range(frames[0] + 1, len(clouds)):
+        if len(observed[index]) == 0:
+            continue
+        if tracker.lost:
+            newest = frames[frames <= max(index - lag, frames[0])][-1]
+            tracker.seed(*registered_fit.fit(registered[newest]))
+            reseeds += 1
+        started = time.perf_counter()
+        live[index] = tracker.track(observed[index])
+        seconds.append(time.perf_counter() - started)
+    scored = frames[frames > frames[0]]
+    offline = result.joint_positions[np.searchsorted(frames, scored)]
+    gap = np.linalg.norm(live[scored] - offline, axis=2)                       # (F, J)
+    # waiting for the registration: the offline joints of the newest frame `lag` earlier
+    held = result.joint_positions[np.searchsorted(frames, [frames[frames <= max(s - lag, frames[0])][-1]
+                                                           for s in scored])]
+    hold_gap = np.linalg.norm(held - offline, axis=2)
+    key = np.isin(scored, result.key_frames)
+    gt = GroundTruth.load(bag / 'gt.npz')
+    stamp_array = np.asarray(stamps)[scored]
+
+    def report(positions):
+        skeleton = PredictedSkeleton(model.joint_names, list(model.parents), stamp_array, positions)
+        return evaluate_joints(skeleton, gt)
+
+    offline_report, live_report = report(offline), report(live[scored])
+    return {'joints': model.n_joints, 'frames': len(scored), 'points': int(np.median([len(o) for o in observed])),
+            'gap_key_median_cm': 100 * float(np.nanmedian(gap[key])) if key.any() else float('nan'),
+            'gap_median_cm': 100 * float(np.nanmedian(gap)), 'gap_p95_cm': 100 * float(np.nanpercentile(gap, 95)),
+            'hold_median_cm': 100 * float(np.median(hold_gap)), 'hold_p95_cm': 100 * float(np.percentile(hold_gap, 95)),
+            'offline': offline_report, 'live': live_report, 'reseeds': reseeds,
+            'ms_median': 1000 * float(np.median(seconds)), 'ms_p95': 1000 * float(np.percentile(seconds, 95))}
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('--only', default='')
+    parser.add_argument('--scenes', default='empty,room')
+    parser.add_argument('--frames', type=int, default=90)
+    parser.add_argument('--iterations', type=int, default=5)
+    parser.add_argument('--sweeps', type=int, default=1)
+    parser.add_argument('--lag', type=int, default=3)
+    parser.add_argument('--work', type=Path)
+    args = parser.parse_args(argv)
+    work = args.work or Path(tempfile.mkdtemp(prefix='bench_live_'))
+    work.mkdir(parents=True, exist_ok=True)
+    rows = [(n, a, s) for (n, a), s in itertools.product(subjects([o for o in args.only.split(',') if o]),
+                                                        args.scenes.split(',')) if n != 'samba']
+    print(f'iterations {args.iterations}, sweeps {args.sweeps}, registration lag {args.lag} frames\n')
+    print('| subject_scene | joints | points | live - offline, key frames / all: median, p95 (cm) '
+          '| held - offline: median, p95 (cm) | offline: artic. recall / mean (cm) '
+          '| live: artic. recall / mean (cm) | re-seeds | fit ms median / p95 |')
+    print('|---|---|---|---|---|---|---|---|---|')
+    for name, source_args, scene in rows:
+        try:
+            row = live_row(simulated_bag(name, source_args, scene, args.frames, work), args.iterations, args.sweeps,
+                           args.lag)
+        except Exception as error:  # a row that fails is reported, the others still run
+            print(f'| {name}_{scene} | failed: {type(error).__name__}: {error} ||||||||')
+            continue
+        off, live = row['offline'], row['live']
+        print(f"| {name}_{scene} | {row['joints']} | {row['points']} | {row['gap_key_median_cm']:.1f} / "
+              f"{row['gap_median_cm']:.1f}, {row['gap_p95_cm']:.1f} | {row['hold_median_cm']:.1f}, "
+              f"{row['hold_p95_cm']:.1f} | {off.articulated_recall:.2f} / "
+              f"{100 * off.mean_error_m:.1f} | {live.articulated_recall:.2f} / {100 * live.mean_error_m:.1f} "
+              f"| {row['reseeds']} / {row['frames']} | {row['ms_median']:.0f} / {row['ms_p95']:.0f} |", flush=True)
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

@@ -1,0 +1,121 @@
+"""One worker idiom for the nodes: a background thread that processes submitted items in
+order, holding at most `capacity` waiting ones; when full, the oldest waiting item is
+dropped and counted. capacity 1 is "latest frame only" (live fits) and "single flight,
+newest wins" (a long job such as Alg. 2: while it runs, a newer request replaces the
+waiting one). No rclpy: the callbacks stay cheap (submit never blocks) and the executor
+never waits for the work.
+
+    >>> worker = Worker(fit_and_publish, name='live', capacity=1)
+    >>> worker.submit(frame)        # from a subscription callback
+    >>> worker.stats()              # submitted, processed, dropped, failed, latency ms
+    >>> worker.stop()               # in destroy_node
+"""
+from __future__ import annotations
+
+import collections
+import threading
+import time
+from typing import Callable
+
+
+class Worker:
+    """process(item) on a thread named `name`; on_error(item, exception) is called (on the
+    worker thread) when process raises, and the worker goes on with the next item."""
+
+    def __init__(self, process: Callable, name: str, capacity: int = 1,
+                 on_error: Callable | None = None, history: int = 1000):
+        if capacity < 1:
+            raise ValueError(f'capacity must be >= 1, got {capacity}')
+        self._process, self._on_error = process, on_error
+        self.capacity = int(capacity)
+        self._waiting = collections.deque()
+        self._wake = threading.Condition()
+        self._stopping = False
+        self._busy = False
+        self.submitted = self.processed = self.dropped = self.failed = 0
+        self._latency_s = collections.deque(maxlen=history)   # submit -> processed, seconds
+        self._done_at = collections.deque(maxlen=history)     # monotonic end times
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self._thread.start()
+
+    def submit(self, item) -> int:
+        """Queue `item`; returns how many waiting items this dropped (0 or more)."""
+        with self._wake:
+            self._waiting.append((time.monotonic(), item))
+            self.submitted += 1
+            dropped = 0
+            while len(self._waiting) > self.capacity:
+                self._waiting.popleft()
+                dropped += 1
+            self.dropped += dropped
+            self._wake.notify()
+        return dropped
+
+    def clear(self) -> int:
+        """Forget the waiting items (not counted as dropped: the caller chose to); returns how many."""
+        with self._wake:
+            n = len(self._waiting)
+            self._waiting.clear()
+        return n
+
+    @property
+    def idle(self) -> bool:
+        with self._wake:
+            return not self._waiting and not self._busy
+
+    def wait_idle(self, timeout: float) -> bool:
+        """Block until nothing waits and nothing runs (tests, shutdown); False on timeout."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self.idle:
+                return True
+            time.sleep(0.005)
+        return self.idle
+
+    def stats(self, window_s: float = 10.0) -> dict:
+        """Counts, the latency (submit -> done) median / p95 in ms over the last items, and
+        the rate of processed items (Hz) over the last `window_s` seconds."""
+        with self._wake:
+            latency = sorted(self._latency_s)
+            done = [t for t in self._done_at if t > time.monotonic() - window_s]
+            counts = {'submitted': self.submitted, 'processed': self.processed, 'dropped': self.dropped,
+                      'failed': self.failed, 'waiting': len(self._waiting), 'busy': self._busy}
+        percentile = (lambda q: 1000.0 * latency[min(len(latency) - 1, int(q * len(latency)))]) if latency \
+            else (lambda q: float('nan'))
+        return {**counts, 'latency_ms_median': percentile(0.5), 'latency_ms_p95': percentile(0.95),
+                'rate_hz': len(done) / window_s}
+
+    def stop(self, timeout: float = 10.0) -> None:
+        """Finish the item in progress, drop the waiting ones, end the thread."""
+        with self._wake:
+            self._stopping = True
+            self._waiting.clear()
+            self._wake.notify()
+        if self._thread is not threading.current_thread():
+            self._thread.join(timeout=timeout)
+
+    def _run(self) -> None:
+        while True:
+            with self._wake:
+                while not self._waiting and not self._stopping:
+                    self._wake.wait()
+                if self._stopping:
+                    return
+                submitted_at, item = self._waiting.popleft()
+                self._busy = True
+            try:
+                self._process(item)
+                ok = True
+            except Exception as error:  # one bad item never ends the worker
+                ok = False
+                if self._on_error is not None:
+                    self._on_error(item, error)
+            with self._wake:
+                self._busy = False
+                now = time.monotonic()
+                if ok:
+                    self.processed += 1
+                    self._latency_s.append(now - submitted_at)
+                    self._done_at.append(now)
+                else:
+                    self.failed += 1

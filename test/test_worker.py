@@ -1,0 +1,77 @@
+"""The nodes' one worker idiom: bounded waiting, counted drops, errors that do not end it."""
+import threading
+
+import pytest
+
+from skel_extract_ros.nodes.worker import Worker
+
+
+def test_latest_frame_only_drops_the_older_waiting_items_and_counts_them():
+    release, started, seen = threading.Event(), threading.Event(), []
+
+    def process(item):
+        seen.append(item)
+        started.set()
+        release.wait(5.0)
+
+    worker = Worker(process, 'test', capacity=1)
+    try:
+        worker.submit(0)
+        assert started.wait(5.0)              # 0 is running: 1..4 wait, each replacing the last
+        assert [worker.submit(i) for i in range(1, 5)] == [0, 1, 1, 1]
+        release.set()
+        assert worker.wait_idle(5.0)
+        stats = worker.stats()
+        assert seen == [0, 4]
+        assert (stats['submitted'], stats['processed'], stats['dropped'], stats['waiting']) == (5, 2, 3, 0)
+        assert stats['latency_ms_median'] >= 0.0 and stats['rate_hz'] > 0.0
+    finally:
+        worker.stop()
+
+
+def test_a_deeper_queue_keeps_order_and_drops_the_oldest():
+    release, seen = threading.Event(), []
+    worker = Worker(lambda item: (release.wait(5.0), seen.append(item)), 'test', capacity=3)
+    try:
+        for i in range(6):
+            worker.submit(i)
+        release.set()
+        assert worker.wait_idle(5.0)
+        # 0 was taken at once (or still waiting when 3 arrived): the survivors are in order
+        assert seen == sorted(seen) and seen[-3:] == [3, 4, 5]
+        assert worker.dropped == 6 - len(seen)
+    finally:
+        worker.stop()
+
+
+def test_an_item_that_raises_is_reported_and_the_worker_goes_on():
+    errors, seen = [], []
+
+    def process(item):
+        if item == 'bad':
+            raise RuntimeError('broken cloud')
+        seen.append(item)
+
+    worker = Worker(process, 'test', capacity=10, on_error=lambda item, error: errors.append((item, str(error))))
+    try:
+        for item in ('a', 'bad', 'b'):
+            worker.submit(item)
+        assert worker.wait_idle(5.0)
+        assert seen == ['a', 'b'] and errors == [('bad', 'broken cloud')]
+        assert (worker.processed, worker.failed) == (2, 1)
+    finally:
+        worker.stop()
+
+
+def test_stop_ends_the_thread_and_clear_forgets_without_counting():
+    release = threading.Event()
+    worker = Worker(lambda item: release.wait(5.0), 'test', capacity=5)
+    worker.submit(1)
+    worker.submit(2)
+    worker.submit(3)
+    assert worker.clear() >= 1 and worker.dropped == 0
+    release.set()
+    worker.stop()
+    assert not worker._thread.is_alive()
+    with pytest.raises(ValueError, match='capacity'):
+        Worker(lambda item: None, 'test', capacity=0)
