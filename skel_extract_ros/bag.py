@@ -171,6 +171,11 @@ def _topics(path: Path) -> dict:
         raise BagError(f'cannot read bag {path}: {error}') from error
 
 
+def topic_counts(path) -> dict:
+    """{topic: message count} of every topic of a bag directory or an .mcap file."""
+    return {topic: n for topic, (_, n) in _topics(Path(path)).items()}
+
+
 def cloud_topics(path) -> dict:
     """{topic: message count} of the topics a cloud can be read from: PointCloud2 topics,
     and Image topics that have a CameraInfo topic beside them (depth images)."""

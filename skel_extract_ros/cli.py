@@ -264,7 +264,7 @@ def _cmd_replay(args) -> int:
     out = Path(args.out)
     try:
         summary = replay(args.input, out, rate=args.rate, topic=args.topic, params_file=args.params,
-                         namespace=args.namespace, progress=on_published)
+                         namespace=args.namespace, progress=on_published, realtime=args.realtime)
     except (BagError, ParamsError, ReplayError) as error:
         raise UserError(str(error)) from None
     finally:
@@ -275,6 +275,12 @@ def _cmd_replay(args) -> int:
           f'skeleton: {summary["n_joints"]} joints on {summary["n_frames_with_joints"]} frames')
     print(f'wrote {out / "output.mcap"} ({counts}), {out / "skeleton.json"}, {out / "skeleton.bvh"}, '
           f'{out / "registered.npz"}, {out / "skeleton.png"}; node logs in {out / "logs"}')
+    if 'realtime' in summary:
+        camera = summary['realtime']
+        print(f'realtime: {camera["with_joints"]} of {camera["published"]} camera frames got joints '
+              f'({camera["joints_hz"]:.1f} Hz), {camera["without_joints"]} without; latency cloud -> joints '
+              f'median {camera["latency_ms_median"]:.0f} ms, p95 {camera["latency_ms_p95"]:.0f} ms '
+              f'({camera["live_frames"]} live frames)')
     for name in ('registration_ms', 'live_joints_ms'):
         if name in summary:
             values = summary[name]
@@ -384,6 +390,9 @@ def build_parser() -> argparse.ArgumentParser:
     replay_cmd.add_argument('--out', required=True, help='output directory (created if missing)')
     replay_cmd.add_argument('--rate', type=float, default=1.0,
                             help='playback speed factor (default 1); 0 = as fast as the nodes take it')
+    replay_cmd.add_argument('--realtime', action='store_true',
+                            help='publish like a camera: at the bag\'s pace (x --rate), best effort, never waiting '
+                                 'for the nodes; report the joints rate, latency and frames without joints')
     replay_cmd.add_argument('--topic', default=None, help='PointCloud2 topic in the bag (default: the only one)')
     replay_cmd.add_argument('--params', default=None, help='ROS 2 parameter YAML for the nodes')
     replay_cmd.add_argument('--namespace', default=None, help='run the nodes and topics in this namespace')

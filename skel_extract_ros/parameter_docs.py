@@ -138,3 +138,80 @@ def describe(node: str, name: str) -> tuple:
     """(description, low, high) of a node parameter; KeyError for an undocumented one."""
     description, (low, high) = PARAMETER_DOCS[node][name]
     return description, low, high
+
+
+# -- the README's parameter tables are generated from here ---------------------------------
+README_BEGIN = '<!-- parameters:{node} (generated: python -m skel_extract_ros.parameter_docs README.md) -->'
+README_END = '<!-- /parameters:{node} -->'
+
+
+def parameter_defaults(node: str) -> dict:
+    """{name: default as the node declares it} of every parameter of a node, in declaration
+    order: the method's dataclass fields (nested sections as `section.name`; an unset
+    optional is 0.0 for a number, [] for a list, as in the YAML), then the node's own."""
+    import dataclasses
+    import typing
+
+    from .core.joints import JointParams
+    from .core.preprocess import PreprocessParams
+    from .core.registration import RegistrationParams
+    from .core.rest_pose import RestPoseParams
+    from .core.segmentation import SegmentationParams
+    from .core.structure import StructureParams
+    from .params import NODE_ONLY
+    sections = {'registration_node': [('', RegistrationParams), ('rest_pose.', RestPoseParams),
+                                      ('preprocess.', PreprocessParams), ('segmentation.', SegmentationParams)],
+                'accumulator_node': [('', StructureParams)],
+                'joint_estimation_node': [('', JointParams)]}[node]
+    defaults = {}
+    for prefix, cls in sections:
+        hints = typing.get_type_hints(cls)
+        for field in dataclasses.fields(cls):
+            default = field.default
+            if default is None:
+                default = 0.0 if float in typing.get_args(hints[field.name]) else []
+            defaults[prefix + field.name] = default
+    return {**defaults, **NODE_ONLY[node]}
+
+
+def _format_default(value) -> str:
+    if isinstance(value, bool):
+        return str(value).lower()
+    if isinstance(value, tuple):
+        value = [float(v) for v in value]
+    return str(value)
+
+
+def markdown_table(node: str) -> str:
+    """The README table of a node's parameters: name, default, meaning (with unit)."""
+    lines = ['| parameter | default | meaning (unit) |', '|---|---|---|']
+    for name, default in parameter_defaults(node).items():
+        lines.append(f'| `{name}` | `{_format_default(default)}` | {PARAMETER_DOCS[node][name][0]} |')
+    return '\n'.join(lines)
+
+
+def readme_with_tables(text: str) -> str:
+    """`text` with every node's generated block replaced by the current table (ValueError
+    if a block's markers are missing)."""
+    for node in PARAMETER_DOCS:
+        begin, end = README_BEGIN.format(node=node), README_END.format(node=node)
+        if begin not in text or end not in text:
+            raise ValueError(f'the README has no block {begin} ... {end}')
+        head, rest = text.split(begin, 1)
+        _, tail = rest.split(end, 1)
+        text = f'{head}{begin}\n{markdown_table(node)}\n{end}{tail}'
+    return text
+
+
+def main(argv=None) -> int:
+    """python -m skel_extract_ros.parameter_docs README.md: rewrite the tables in place."""
+    import sys
+    from pathlib import Path
+    paths = (argv if argv is not None else sys.argv[1:]) or ['README.md']
+    for path in map(Path, paths):
+        path.write_text(readme_with_tables(path.read_text()))
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

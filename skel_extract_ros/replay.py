@@ -3,17 +3,23 @@
 The bag's clouds are published on `points` (depth images on `depth/image`, with their
 camera info on `depth/camera_info`, and the registration node set to input:=depth_image)
 with their original header stamps, at the
-bag's pace scaled by `rate` (0 = as fast as the registration node takes them). A frame is
-never published before the registration node has answered the previous one, so the
-replay loses nothing however slow the machine is; the printed rate says what was
-sustained. Every output topic is recorded (raw CDR, receive time) into DIR/output.mcap
-with rosbags, and skeleton.json / skeleton.bvh / registered.npz / skeleton.png are written
+bag's pace scaled by `rate` (0 = as fast as the registration node takes them). Lossless
+(the default): a frame is never published before the registration node has answered the
+previous one, so the replay loses nothing however slow the machine is; the printed rate
+says what was sustained. `realtime`: like a camera, at the bag's pace (times `rate`),
+best effort, never waiting for the nodes, the registration node on its default best-effort
+input; the summary then says how many camera frames got joints, at what rate, and with
+what latency (cloud published -> joints received). Every output topic is recorded (raw CDR, receive time) into DIR/output.mcap,
+one self-contained MCAP file (schemas and summary inside) that Foxglove opens and `ros2
+bag play DIR/output.mcap` plays; rosbags writes it as a bag
+directory, whose one file is moved into place when the recording closes, and skeleton.json / skeleton.bvh / registered.npz / skeleton.png are written
 from the received messages: the same files as `skel-extract run`.
 """
 from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -34,6 +40,7 @@ OUTPUT_TOPICS = (
     ('skeleton/description', 'std_msgs/msg/String', True),
     ('skeleton/joints', 'geometry_msgs/msg/PoseArray', False),
     ('skeleton/markers', 'visualization_msgs/msg/MarkerArray', False),
+    ('/diagnostics', 'diagnostic_msgs/msg/DiagnosticArray', False),     # every node's health, 1 Hz
 )
 
 
@@ -65,7 +72,8 @@ def _ros_type(name: str):
     return getattr(module, message)
 
 
-def _start_nodes(params_file: Path | None, namespace: str | None, logs: Path, depth_image: bool = False) -> dict:
+def _start_nodes(params_file: Path | None, namespace: str | None, logs: Path, depth_image: bool = False,
+                 lossless: bool = True) -> dict:
     logs.mkdir(parents=True, exist_ok=True)
     env = dict(os.environ, PYTHONUNBUFFERED='1')
     processes = {}
@@ -73,8 +81,9 @@ def _start_nodes(params_file: Path | None, namespace: str | None, logs: Path, de
         command = [sys.executable, '-m', f'skel_extract_ros.nodes.{name}', '--ros-args']
         if params_file is not None:
             command += ['--params-file', str(params_file)]
-        if name == 'registration_node':   # a bag replay must not lose clouds (see the node)
-            command += ['-p', 'input_reliability:=reliable']
+        if name == 'registration_node':
+            if lossless:   # a lossless replay must not lose clouds (see the node)
+                command += ['-p', 'input_reliability:=reliable']
             if depth_image:
                 command += ['-p', 'input:=depth_image']
         if namespace:
@@ -110,19 +119,21 @@ def _log_tail(path: Path, lines: int = 3) -> str:
 class _Recorder:
     """rclpy node: publishes the input clouds, records and decodes every output."""
 
-    def __init__(self, node, writer, store, received: Received, depth_image: bool = False):
+    def __init__(self, node, writer, store, received: Received, depth_image: bool = False,
+                 lossless: bool = True):
         from rclpy.serialization import deserialize_message
 
-        from .nodes.common import LATCHED_QOS, STREAM_QOS
+        from .nodes.common import LATCHED_QOS, SENSOR_QOS, STREAM_QOS
+        input_qos = STREAM_QOS if lossless else SENSOR_QOS     # realtime: as a camera driver
         self.node, self.writer, self.received = node, writer, received
         self._deserialize = deserialize_message
         self.condition = threading.Condition()
         if depth_image:
-            self.publisher = node.create_publisher(_ros_type('sensor_msgs/msg/Image'), 'depth/image', STREAM_QOS)
+            self.publisher = node.create_publisher(_ros_type('sensor_msgs/msg/Image'), 'depth/image', input_qos)
             self.info_publisher = node.create_publisher(_ros_type('sensor_msgs/msg/CameraInfo'),
-                                                        'depth/camera_info', STREAM_QOS)
+                                                        'depth/camera_info', input_qos)
         else:
-            self.publisher = node.create_publisher(_ros_type('sensor_msgs/msg/PointCloud2'), 'points', STREAM_QOS)
+            self.publisher = node.create_publisher(_ros_type('sensor_msgs/msg/PointCloud2'), 'points', input_qos)
             self.info_publisher = None
         self.connections = {}
         for topic, type_name, latched in OUTPUT_TOPICS:
@@ -137,7 +148,8 @@ class _Recorder:
         from .pointcloud import decode_xyz
         now = time.perf_counter()
         self.writer.write(self.connections[topic], time.time_ns(), raw)
-        msg = None if topic == 'skeleton/markers' else self._deserialize(raw, _ros_type(type_name))
+        # recorded only: markers and diagnostics are not needed for the files
+        msg = None if topic in ('skeleton/markers', '/diagnostics') else self._deserialize(raw, _ros_type(type_name))
         r = self.received
         with self.condition:
             r.counts[topic] = r.counts.get(topic, 0) + 1
@@ -173,10 +185,12 @@ class _Recorder:
 
 
 def replay(input_path, out, rate: float = 1.0, topic: str | None = None, params_file=None,
-           namespace: str | None = None, frame_timeout: float = 20.0, progress=None) -> dict:
+           namespace: str | None = None, frame_timeout: float = 20.0, progress=None,
+           realtime: bool = False) -> dict:
     """Run the node graph on a bag; writes DIR/output.mcap, skeleton.json, skeleton.bvh,
-    registered.npz, skeleton.png and DIR/logs/<node>.log. Returns a summary dict (counts, latencies).
-    Raises ReplayError / BagError on failure."""
+    registered.npz, skeleton.png and DIR/logs/<node>.log. Returns a summary dict (counts,
+    latencies; with `realtime`, 'realtime': the camera-like delivery). Raises ReplayError /
+    BagError on failure."""
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.serialization import deserialize_message
@@ -191,6 +205,8 @@ def replay(input_path, out, rate: float = 1.0, topic: str | None = None, params_
     input_path, out = Path(input_path), Path(out)
     if rate < 0:
         raise ReplayError(f'--rate must be >= 0 (0 = as fast as possible), got {rate}')
+    if realtime and rate == 0:
+        raise ReplayError('--realtime needs a --rate above 0 (1 = the bag\'s own pace)')
     topic = select_cloud_topic(input_path, topic)
     n_frames = cloud_topics(input_path)[topic]
     if n_frames < 2:
@@ -214,8 +230,12 @@ def replay(input_path, out, rate: float = 1.0, topic: str | None = None, params_
     received = Received()
     context = rclpy.Context()
     rclpy.init(context=context)
-    processes = _start_nodes(params_file, namespace, out / 'logs', depth_image)
-    writer = Writer(out / 'output.mcap', version=9, storage_plugin=StoragePlugin.MCAP)
+    processes = _start_nodes(params_file, namespace, out / 'logs', depth_image, lossless=not realtime)
+    # rosbags writes a bag directory DIR/.recording/ holding .recording.mcap; the file is
+    # all a reader needs, so it becomes DIR/output.mcap when the recording closes
+    recording = out / '.recording'
+    shutil.rmtree(recording, ignore_errors=True)
+    writer = Writer(recording, version=9, storage_plugin=StoragePlugin.MCAP)
     writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
     writer.open()
     node = rclpy.create_node('skel_extract_replay', namespace=namespace or '', context=context)
@@ -224,7 +244,7 @@ def replay(input_path, out, rate: float = 1.0, topic: str | None = None, params_
     spinner = threading.Thread(target=executor.spin, daemon=True)
     exit_codes = {}
     try:
-        recorder = _Recorder(node, writer, store, received, depth_image)
+        recorder = _Recorder(node, writer, store, received, depth_image, lossless=not realtime)
         spinner.start()
 
         def alive():
@@ -251,7 +271,7 @@ def replay(input_path, out, rate: float = 1.0, topic: str | None = None, params_
         for index, (_time, raw) in enumerate(_raw_messages(input_path, topic)):
             stamp = stamp_ns(deserialize_message(bytes(raw), cloud_type).header)
             first_stamp = stamp if first_stamp is None else first_stamp
-            if previous is not None and not recorder.wait_for(
+            if not realtime and previous is not None and not recorder.wait_for(
                     lambda s=previous: s in received.filtered_at, frame_timeout, alive):
                 print(f'skel-extract replay: no answer to cloud {index - 1} within {frame_timeout:.0f} s; '
                       'going on', file=sys.stderr)
@@ -266,13 +286,23 @@ def replay(input_path, out, rate: float = 1.0, topic: str | None = None, params_
             previous = stamp
             if progress:
                 progress(index + 1, n_frames)
-        recorder.wait_for(lambda: previous in received.filtered_at, frame_timeout, alive)
-        # the last registered frame must be in before the window is closed by hand; once a
-        # rest pose exists every frame is registered unless it fails (then nothing comes),
-        # and a busy machine can take seconds per frame
-        recorder.wait_for(lambda: previous in received.registered_at,
-                          frame_timeout if received.rest is not None else 5.0, alive)
-        streamed = time.perf_counter() - started
+        if realtime:
+            # frames may have been skipped, the last one too: wait until the nodes go quiet
+            streamed_until = time.perf_counter()
+            while True:
+                seen = len(received.registered_at) + len(received.filtered_at)
+                recorder.wait_for(lambda: len(received.registered_at) + len(received.filtered_at) > seen,
+                                  3.0, alive)
+                if len(received.registered_at) + len(received.filtered_at) == seen:
+                    break
+        else:
+            recorder.wait_for(lambda: previous in received.filtered_at, frame_timeout, alive)
+            # the last registered frame must be in before the window is closed by hand; once a
+            # rest pose exists every frame is registered unless it fails (then nothing comes),
+            # and a busy machine can take seconds per frame
+            recorder.wait_for(lambda: previous in received.registered_at,
+                              frame_timeout if received.rest is not None else 5.0, alive)
+        streamed = (streamed_until if realtime else time.perf_counter()) - started
         if not received.registered:
             raise ReplayError('no cloud was registered (no rest pose: is the subject in view? '
                               f'{_log_tail(out / "logs" / "registration_node.log")})')
@@ -301,9 +331,13 @@ def replay(input_path, out, rate: float = 1.0, topic: str | None = None, params_
         node.destroy_node()
         rclpy.shutdown(context=context)
         writer.close()
+        (recording / '.recording.mcap').replace(out / 'output.mcap')
+        shutil.rmtree(recording, ignore_errors=True)
 
     summary = _write_files(received, out)
     summary.update(_latencies(received))
+    if realtime:
+        summary['realtime'] = _camera_delivery(received, streamed)
     summary['streamed_s'] = streamed
     summary['clouds_per_s'] = n_frames / streamed
     summary['exit_codes'] = exit_codes
@@ -341,6 +375,23 @@ def _write_files(received: Received, out: Path) -> dict:
     draw_skeleton_png(out / 'skeleton.png', observed, registered,
                       labels, positions, np.asarray(description['parents']), np.array(with_joints) * 1e-9)
     return {'n_frames': len(stamps_ns), 'n_joints': n_joints, 'n_frames_with_joints': len(with_joints)}
+
+
+def _camera_delivery(received: Received, streamed_s: float) -> dict:
+    """What a camera user got: frames published, frames with joints (and their rate over the
+    streaming time), frames without, and the latency cloud published -> joints received,
+    median / p95 in ms, over the frames that got joints live (the frames of the structure's
+    window, which Alg. 2 answers seconds later, are counted, not timed)."""
+    published = received.published_at
+    with_joints = [s for s in published if s in received.joints_at]
+    window = set(received.structure['window_stamps_ns']) if received.structure else set()
+    live = [1000 * (received.joints_at[s] - published[s]) for s in with_joints if s not in window]
+    return {'published': len(published), 'with_joints': len(with_joints),
+            'without_joints': len(published) - len(with_joints),
+            'joints_hz': len(with_joints) / streamed_s if streamed_s > 0 else float('nan'),
+            'live_frames': len(live),
+            'latency_ms_median': float(np.median(live)) if live else float('nan'),
+            'latency_ms_p95': float(np.percentile(live, 95)) if live else float('nan')}
 
 
 def _latencies(received: Received) -> dict:

@@ -75,3 +75,17 @@ def test_every_node_parameter_is_documented_in_the_file_the_code_and_the_readme(
         for name, value in NODE_ONLY[node].items():
             section = nodes[node]
             assert section[name] == value, f'{node}.{name}: YAML {section[name]} != code {value}'
+
+
+def test_readme_parameter_tables_are_generated_from_the_one_source():
+    """The README's ROS API tables are exactly what parameter_docs generates from the
+    descriptions and the dataclass / node defaults (regenerate with
+    `python -m skel_extract_ros.parameter_docs README.md`)."""
+    from skel_extract_ros.parameter_docs import markdown_table, readme_with_tables
+    readme = (DEFAULT_PARAMS_FILE.parent.parent / 'README.md').read_text()
+    assert readme_with_tables(readme) == readme, 'README parameter tables out of date'
+    # and a table that lost a parameter or a default would be caught
+    table = markdown_table('joint_estimation_node')
+    assert '| `max_iterations` | `10` |' in table and '| `buffer_size` | `300` |' in table
+    with pytest.raises(ValueError, match='no block'):
+        readme_with_tables(readme.replace('<!-- /parameters:accumulator_node -->', ''))

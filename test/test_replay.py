@@ -2,7 +2,8 @@
 import json
 
 import numpy as np
-from rosbags.rosbag2 import Reader
+
+from skel_extract_ros.bag import topic_counts
 
 from conftest import check_sample_scores, run_cli, run_cli_private_domain
 
@@ -13,8 +14,9 @@ def test_replay_sample_bag_records_every_topic_and_matches_run(tmp_path, sample_
     assert done.returncode == 0, done.stderr[-2000:]
     assert 'latency registration' in done.stdout
     # every output topic recorded, one message per input frame where one is due
-    with Reader(out / 'output.mcap') as reader:
-        counts = {c.topic: c.msgcount for c in reader.connections}
+    # one self-contained MCAP file, as Foxglove and `ros2 bag play` open it
+    assert (out / 'output.mcap').is_file() and not (out / '.recording').exists()
+    counts = topic_counts(out / 'output.mcap')
     # every depth image gives a filtered cloud (empty while nobody has moved); frames from
     # the rest pose on (frame 1) are registered and get joints
     assert counts['/filtered_points'] == 60, counts
@@ -22,6 +24,7 @@ def test_replay_sample_bag_records_every_topic_and_matches_run(tmp_path, sample_
         assert counts[topic] == 59, counts
     for topic in ('/rest_points', '/skeleton/structure', '/skeleton/description'):
         assert counts[topic] >= 1, counts
+    assert counts['/diagnostics'] >= 3, counts      # each node reports once a second
     # the nodes shut down cleanly on SIGINT
     for name in ('registration_node', 'accumulator_node', 'joint_estimation_node'):
         assert 'Traceback' not in (out / 'logs' / f'{name}.log').read_text()

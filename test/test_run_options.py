@@ -4,10 +4,9 @@ import json
 
 import numpy as np
 import pytest
-from rosbags.rosbag2 import Reader
 
 from conftest import run_cli, run_cli_private_domain
-from skel_extract_ros.bag import write_cloud_bag
+from skel_extract_ros.bag import topic_counts, write_cloud_bag
 from skel_extract_ros.sim import generate_sequence
 
 
@@ -45,8 +44,7 @@ def test_replay_at_twice_the_bag_rate_records_every_frame(tmp_path, arm_bag):
     bag, _ = arm_bag
     done = run_cli_private_domain(70, 'replay', bag, '--out', tmp_path / 'out', '--rate', '2')
     assert done.returncode == 0, done.stderr[-2000:]
-    with Reader(tmp_path / 'out' / 'output.mcap') as reader:
-        counts = {c.topic: c.msgcount for c in reader.connections}
+    counts = topic_counts(tmp_path / 'out' / 'output.mcap')
     # every cloud answered; from the rest pose (frame 1: the arm has moved) on, registered
     assert counts['/filtered_points'] == 16 and counts['/registered_points'] == 15, counts
     assert counts['/skeleton/joints'] == 15, counts
@@ -71,3 +69,23 @@ def test_run_on_a_recording_where_the_limbs_take_turns_finds_every_joint(tmp_pat
     joints = json.loads(done.stdout)['joints']
     assert joints['n_articulated'] == 9 and joints['articulated_recall'] >= 8 / 9, joints
     assert joints['recall'] >= 0.85 and joints['precision'] >= 0.6 and joints['mean_error_m'] < 0.09, joints
+
+
+def test_replay_realtime_publishes_like_a_camera_and_reports_what_it_delivered(tmp_path, arm_bag):
+    """--realtime never waits for the nodes (frames the registration cannot take are
+    skipped, as from a camera) and says how many camera frames got joints; every frame that
+    was registered gets joints, and the numbers add up to the frames published."""
+    import re
+    bag, _ = arm_bag
+    done = run_cli_private_domain(71, 'replay', bag, '--out', tmp_path / 'out', '--realtime', '--rate', '0.25')
+    assert done.returncode == 0, done.stderr[-2000:]
+    line = re.search(r'realtime: (\d+) of (\d+) camera frames got joints \(([\d.]+) Hz\), (\d+) without; '
+                     r'latency cloud -> joints median (\S+) ms, p95 (\S+) ms', done.stdout)
+    assert line, done.stdout
+    with_joints, published, without = int(line[1]), int(line[2]), int(line[4])
+    assert published == 16 and with_joints + without == published and with_joints >= 2
+    counts = topic_counts(tmp_path / 'out' / 'output.mcap')
+    assert counts['/skeleton/joints'] == counts['/registered_points'] == with_joints, counts
+    assert counts['/filtered_points'] <= 16
+    done = run_cli('replay', bag, '--out', tmp_path / 'again', '--realtime', '--rate', '0')
+    assert done.returncode == 2 and '--realtime needs a --rate above 0' in done.stderr

@@ -33,7 +33,8 @@ from ..params import structure_params_from_dict
 from .common import (LATCHED_QOS, STREAM_QOS, StampPairer, ThrottledLog, declare_node_parameters,
                      decode_or_warn, decode_registered_or_warn, run_node)
 from .conversions import stamp_ns, structure_document
-from .worker import Worker
+from .diagnostics import OK, WARN, NodeDiagnostics
+from .worker import RateMeter, Worker
 
 SECTION = 'accumulator_node'
 
@@ -56,12 +57,15 @@ class AccumulatorNode(Node):
         self._extracted_once = False
         self.extractor = Worker(lambda job: self._extract(*job), 'structure', capacity=1,
                                 on_error=self._extraction_failed)
+        self.registered_rate = RateMeter()
+        self.last_bones = 0
         self.extractions = 0
         self.published = 0
         self.create_subscription(PointCloud2, 'rest_points', self._on_rest, LATCHED_QOS)
         self.create_subscription(PointCloud2, 'registered_points', self._on_registered, STREAM_QOS)
         self.create_subscription(PointCloud2, 'filtered_points', self._on_filtered, STREAM_QOS)
         self.create_service(Trigger, '~/extract', self._on_extract)
+        self.diagnostics = NodeDiagnostics(self, self._diagnostics)
         mode = f'sliding, every {self.stride} frames' if self.sliding else 'once'
         self.get_logger().info(f'waiting for registered_points: windows of {self.window_size} frames ({mode})')
 
@@ -89,6 +93,7 @@ class AccumulatorNode(Node):
             self._add(stamp_ns(msg.header), pair[0])
 
     def _on_registered(self, msg: PointCloud2) -> None:
+        self.registered_rate.tick()
         stamp = stamp_ns(msg.header)
         points = decode_registered_or_warn(msg, self.log, self.rest)
         if points is None:
@@ -146,6 +151,24 @@ class AccumulatorNode(Node):
         self.extractor.submit((growth, rest_stamp, frame_id, stamps, window, reason))
         return True
 
+    def _diagnostics(self) -> tuple:
+        """(level, state, values) for /diagnostics."""
+        with self._lock:
+            n_frames, has_rest = len(self.frames), self.rest is not None
+        running = not self.extractor.idle
+        if not has_rest:
+            level, state = WARN, 'waiting for rest_points'
+        elif running:
+            level, state = OK, f'extracting the structure from {n_frames} frames'
+        elif self.published == 0:
+            level, state = OK, f'collecting: {n_frames} of {self.window_size} frames'
+        else:
+            level, state = OK, f'skeleton of {self.last_bones} bones published'
+        return level, state, {'rate_in_hz': self.registered_rate.rate(), 'frames': n_frames,
+                              'window_size': self.window_size, 'extracting': running,
+                              'extractions': self.extractions, 'published': self.published,
+                              'failed': self.extractor.failed}
+
     def _extraction_failed(self, _job, error) -> None:
         self.get_logger().error(f'structure extraction failed: {type(error).__name__}: {error}')
 
@@ -170,6 +193,7 @@ class AccumulatorNode(Node):
                                       update.changes)
         self.structure_pub.publish(String(data=json.dumps(document)))
         self.published += 1
+        self.last_bones = structure.n_bones
         changes = '; '.join(f'{kind} {", ".join(names)}' for kind, names in update.changes.items() if names)
         self.get_logger().info(f'skeletal structure ({reason}): {structure.n_bones} bones from '
                                f'{len(update.key_stamps)} key frames in {seconds:.1f} s'

@@ -41,7 +41,8 @@ from ..params import joint_params_from_dict
 from .common import (LATCHED_QOS, STREAM_QOS, StampPairer, ThrottledLog, declare_node_parameters,
                      decode_or_warn, decode_registered_or_warn, run_node)
 from .conversions import description_document, parse_structure, pose_array, skeleton_markers, stamp_ns
-from .worker import Worker
+from .diagnostics import OK, WARN, NodeDiagnostics
+from .worker import RateMeter, Worker
 
 SECTION = 'joint_estimation_node'
 
@@ -67,11 +68,13 @@ class JointEstimationNode(Node):
         self.last_published = None           # stamp of the newest frame with joints published
         self._early_structure = None
         self.estimator = Worker(self._estimate, 'joints', capacity=1, on_error=self._estimation_failed)
-        self.live_ms = collections.deque(maxlen=10_000)
+        self.live_ms = collections.deque(maxlen=1000)      # per live frame fit
+        self.registered_rate, self.joints_rate = RateMeter(), RateMeter()
         self.create_subscription(PointCloud2, 'rest_points', self._on_rest, LATCHED_QOS)
         self.create_subscription(PointCloud2, 'registered_points', self._on_registered, STREAM_QOS)
         self.create_subscription(PointCloud2, 'filtered_points', self._on_filtered, STREAM_QOS)
         self.create_subscription(String, 'skeleton/structure', self._on_structure, LATCHED_QOS)
+        self.diagnostics = NodeDiagnostics(self, self._diagnostics)
         self.get_logger().info('waiting for skeleton/structure')
 
     # -- inputs ----------------------------------------------------------------------------
@@ -100,6 +103,7 @@ class JointEstimationNode(Node):
             self._pair(1, msg.header, points)
 
     def _on_registered(self, msg: PointCloud2) -> None:
+        self.registered_rate.tick()
         points = decode_registered_or_warn(msg, self.log, self.rest)
         if points is None:
             return
@@ -164,6 +168,26 @@ class JointEstimationNode(Node):
         """Alg. 2 is running or a structure waits for it."""
         return not self.estimator.idle
 
+    def _diagnostics(self) -> tuple:
+        """(level, state, values) for /diagnostics."""
+        with self._lock:
+            tracking = self.tracker is not None
+            n_joints = 0 if self.model_parents is None else len(self.model_parents)
+            has_rest = self.rest is not None
+        live = sorted(self.live_ms.copy())      # copy(): atomic against the appending thread
+        if self.estimating:
+            level, state = OK, 'estimating joints (Alg. 2)' + (f'; tracking {n_joints} joints meanwhile' if tracking else '')
+        elif tracking:
+            level, state = OK, f'tracking {n_joints} joints'
+        else:
+            level, state = WARN, 'waiting for skeleton/structure' if has_rest else 'waiting for rest_points'
+        return level, state, {
+            'rate_in_hz': self.registered_rate.rate(), 'rate_out_hz': self.joints_rate.rate(),
+            'live_fit_ms_median': live[len(live) // 2] if live else float('nan'),
+            'live_fit_ms_p95': live[int(0.95 * (len(live) - 1))] if live else float('nan'),
+            'estimations': self.estimator.processed, 'failed': self.estimator.failed,
+            'structures_replaced': self.estimator.dropped, 'joints': n_joints}
+
     def _estimation_failed(self, _job, error) -> None:
         self.get_logger().error(f'joint estimation failed: {type(error).__name__}: {error} '
                                 '(serving the previous model)')
@@ -216,6 +240,7 @@ class JointEstimationNode(Node):
             self._publish_joints(header, positions, parents)
 
     def _publish_joints(self, header, positions, parents) -> None:
+        self.joints_rate.tick()
         self.joints_pub.publish(pose_array(positions, header))
         self.markers_pub.publish(skeleton_markers(positions, parents, header, self.joint_diameter))
 

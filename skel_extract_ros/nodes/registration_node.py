@@ -40,6 +40,7 @@ from ..pointcloud import CloudDecodeError, decode_xyz
 from .common import (LATCHED_QOS, SENSOR_QOS, STREAM_QOS, ParameterError, ThrottledLog, declare,
                      declare_dataclass, run_node)
 from .conversions import cloud_message, stamp_ns
+from .diagnostics import OK, WARN, NodeDiagnostics
 from .worker import Worker
 
 SECTION = 'registration_node'
@@ -76,6 +77,9 @@ class RegistrationNode(Node):
         self._reset_requested = False
         self._start_over()
         self.worker = Worker(self._work, 'registration', capacity=self.queue_size, on_error=self._failed)
+        self.last_status = ''          # what happened to the newest cloud, for /diagnostics
+        self._reported_skips = 0
+        self.diagnostics = NodeDiagnostics(self, self._diagnostics)
         # best effort matches every driver; reliable (for bag replay) never loses a
         # fragmented megabyte cloud to a full socket buffer, but needs a reliable publisher
         qos = SENSOR_QOS if reliability == 'best_effort' else STREAM_QOS
@@ -152,6 +156,24 @@ class RegistrationNode(Node):
                                    f'{stats["latency_ms_median"]:.0f} ms, p95 {stats["latency_ms_p95"]:.0f} ms, '
                                    f'{stats["dropped"]} skipped')
 
+    def _diagnostics(self) -> tuple:
+        """(level, state, values) for /diagnostics: WARN while there is no rest pose or
+        when clouds were skipped since the last report."""
+        stats = self.worker.stats()
+        new_skips, self._reported_skips = stats['dropped'] - self._reported_skips, stats['dropped']
+        if stats['submitted'] == 0:
+            level, state = WARN, f'waiting for input on {self.resolve_topic_name("points")}'
+        elif self.registration is None:
+            level, state = WARN, f'waiting for the subject (no rest pose yet): {self.last_status}'
+        else:
+            level, state = (WARN if new_skips else OK), f'registering: {self.last_status}'
+        return level, state, {
+            'rate_in_hz': stats['rate_in_hz'], 'rate_out_hz': stats['rate_hz'],
+            'latency_ms_median': stats['latency_ms_median'], 'latency_ms_p95': stats['latency_ms_p95'],
+            'clouds_in': stats['submitted'], 'processed': stats['processed'], 'skipped': stats['dropped'],
+            'failed': stats['failed'], 'waiting': stats['waiting'], 'queue_size': self.queue_size,
+            'rest_points': 0 if self.rest_pose is None else len(self.rest_pose.points)}
+
     def _failed(self, item, error) -> None:
         """A cloud whose processing raised: one throttled line, the node goes on."""
         self.log.warn('failed', f'cloud at {stamp_ns(item[0].header) * 1e-9:.3f} s failed: '
@@ -201,6 +223,7 @@ class RegistrationNode(Node):
                 self._start_over()
         self.last_stamp, self.frame_id = stamp, frame_id
         segmentation = self.segmenter(raw, height, width)
+        self.last_status = f'subject {segmentation.status}'
         if segmentation.status == STATUS_NOBODY:
             self.log.warn('nobody', f'nobody in view: no region of the {segmentation.n_valid} valid points '
                                     'has moved yet (waiting for the subject)')
@@ -234,6 +257,7 @@ class RegistrationNode(Node):
             self.get_logger().info(f'rest pose built from the cloud at {stamp * 1e-9:.3f} s '
                                    f'({len(self.rest_pose.points)} points, frame {frame_id!r})')
         result = self.registration.register_frame(observed)
+        self.last_status = f'frame {result.status}'
         if result.status != STATUS_OK:
             self.log.warn(f'status:{result.status}:{len(observed) == 0}', f'cloud at {stamp * 1e-9:.3f} s not registered ({result.status}: '
                                     f'{len(observed)} points after preprocessing); holding the last pose')

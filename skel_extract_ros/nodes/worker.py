@@ -18,6 +18,30 @@ import time
 from typing import Callable
 
 
+class RateMeter:
+    """Events per second over the last `window_s` seconds (thread-safe)."""
+
+    def __init__(self, window_s: float = 5.0):
+        self.window_s = window_s
+        self._times = collections.deque()
+        self._lock = threading.Lock()
+
+    def tick(self) -> None:
+        now = time.monotonic()
+        with self._lock:
+            self._times.append(now)
+            self._trim(now)
+
+    def rate(self) -> float:
+        with self._lock:
+            self._trim(time.monotonic())
+            return len(self._times) / self.window_s
+
+    def _trim(self, now: float) -> None:
+        while self._times and self._times[0] < now - self.window_s:
+            self._times.popleft()
+
+
 class Worker:
     """process(item) on a thread named `name`; on_error(item, exception) is called (on the
     worker thread) when process raises, and the worker goes on with the next item."""
@@ -34,7 +58,7 @@ class Worker:
         self._busy = False
         self.submitted = self.processed = self.dropped = self.failed = 0
         self._latency_s = collections.deque(maxlen=history)   # submit -> processed, seconds
-        self._done_at = collections.deque(maxlen=history)     # monotonic end times
+        self.rate_in, self.rate_out = RateMeter(), RateMeter()
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._thread.start()
 
@@ -43,6 +67,7 @@ class Worker:
         with self._wake:
             self._waiting.append((time.monotonic(), item))
             self.submitted += 1
+            self.rate_in.tick()
             dropped = 0
             while len(self._waiting) > self.capacity:
                 self._waiting.popleft()
@@ -72,18 +97,17 @@ class Worker:
             time.sleep(0.005)
         return self.idle
 
-    def stats(self, window_s: float = 10.0) -> dict:
+    def stats(self) -> dict:
         """Counts, the latency (submit -> done) median / p95 in ms over the last items, and
-        the rate of processed items (Hz) over the last `window_s` seconds."""
+        the rates (Hz) of submitted and processed items over the last seconds."""
         with self._wake:
             latency = sorted(self._latency_s)
-            done = [t for t in self._done_at if t > time.monotonic() - window_s]
             counts = {'submitted': self.submitted, 'processed': self.processed, 'dropped': self.dropped,
                       'failed': self.failed, 'waiting': len(self._waiting), 'busy': self._busy}
         percentile = (lambda q: 1000.0 * latency[min(len(latency) - 1, int(q * len(latency)))]) if latency \
             else (lambda q: float('nan'))
         return {**counts, 'latency_ms_median': percentile(0.5), 'latency_ms_p95': percentile(0.95),
-                'rate_hz': len(done) / window_s}
+                'rate_in_hz': self.rate_in.rate(), 'rate_hz': self.rate_out.rate()}
 
     def stop(self, timeout: float = 10.0) -> None:
         """Finish the item in progress, drop the waiting ones, end the thread."""
@@ -116,6 +140,6 @@ class Worker:
                 if ok:
                     self.processed += 1
                     self._latency_s.append(now - submitted_at)
-                    self._done_at.append(now)
+                    self.rate_out.tick()
                 else:
                     self.failed += 1
