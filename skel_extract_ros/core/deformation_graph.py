@@ -19,7 +19,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import open3d as o3d
 from scipy.spatial import cKDTree
 
 
@@ -50,6 +49,7 @@ class DeformationGraph:
         Nodes are voxel-grid representatives snapped to the nearest rest point, so they lie
         on the surface. `n_influence` (k) nodes carry each point.
         """
+        import open3d as o3d  # lazy: the accumulator and joint nodes never load it
         rest_points = np.asarray(rest_points, dtype=np.float64)
         if len(rest_points) < n_influence + 1:
             raise ValueError(f'need more than {n_influence} rest points, got {len(rest_points)}')

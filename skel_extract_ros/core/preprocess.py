@@ -7,9 +7,12 @@ Steps, in order, each switchable: drop NaN/inf; crop box; voxel downsampling to 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-import open3d as o3d
+
+if TYPE_CHECKING:
+    import open3d as o3d
 
 
 class PreprocessError(ValueError):
@@ -57,6 +60,7 @@ class Preprocessor:
 
     def __call__(self, points: np.ndarray) -> np.ndarray:
         """(N, 3) raw points (NaN allowed) -> (K, 3) float64 clean points; K may be 0."""
+        import open3d as o3d  # lazy: the accumulator and joint nodes never load it
         p = self.params
         points = np.asarray(points)
         if points.ndim != 2 or points.shape[1] != 3:
@@ -106,6 +110,7 @@ class Preprocessor:
 
 
 def _accepts_seed() -> bool:
+    import open3d as o3d  # lazy: the accumulator and joint nodes never load it
     import inspect
     try:
         return 'seed' in inspect.signature(o3d.geometry.PointCloud.segment_plane).parameters

@@ -12,7 +12,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import open3d as o3d
 from scipy.spatial import cKDTree
 
 
@@ -57,6 +56,7 @@ class RestPose:
     def from_points(cls, points: np.ndarray, params: RestPoseParams | None = None,
                     seed: int = 0) -> 'RestPose':
         """Reconstruct and resample the rest pose from one frame's cleaned points (N, 3)."""
+        import open3d as o3d  # lazy: the accumulator and joint nodes never load it
         params = params or RestPoseParams()
         points = np.asarray(points, dtype=np.float64)
         points = points[np.isfinite(points).all(axis=1)]
@@ -92,6 +92,7 @@ class RestPose:
     def from_raw(cls, points: np.ndarray, n_points: int, seed: int = 0) -> 'RestPose':
         """Baseline without reconstruction: M points picked from the frame by farthest-point
         sampling (used to measure what the reconstruction buys)."""
+        import open3d as o3d  # lazy: the accumulator and joint nodes never load it
         points = np.asarray(points, dtype=np.float64)
         points = points[np.isfinite(points).all(axis=1)]
         if len(points) < n_points:

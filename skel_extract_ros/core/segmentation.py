@@ -34,7 +34,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import open3d as o3d
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
@@ -180,6 +179,7 @@ class SubjectSegmenter:
         points' pixels (K, 2: row, column) in an image of `shape`, a plane must also reach
         the image border: floors and walls run out of view, a still subject's flank (a
         cow's side is a 2 x 1 m plane) lies inside it."""
+        import open3d as o3d  # lazy: the accumulator and joint nodes never load it
         p = self.params
         planes, noise = [], None
         remaining = points
@@ -439,6 +439,7 @@ class SubjectSegmenter:
     # -- unorganized ---------------------------------------------------------------------
     def _unorganized(self, points: np.ndarray, valid: np.ndarray) -> Segmentation:
         """Planes, DBSCAN regions and nearest-neighbour motion on a voxel grid."""
+        import open3d as o3d  # lazy: the accumulator and joint nodes never load it
         p = self.params
         finite = points[valid]
         if len(finite) < p.min_subject_points:
