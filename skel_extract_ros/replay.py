@@ -2,18 +2,21 @@
 
 The bag's clouds are published on `points` (depth images on `depth/image`, with their
 camera info on `depth/camera_info`, and the registration node set to input:=depth_image)
-with their original header stamps, at the
-bag's pace scaled by `rate` (0 = as fast as the registration node takes them). Lossless
-(the default): a frame is never published before the registration node has answered the
-previous one, so the replay loses nothing however slow the machine is; the printed rate
-says what was sustained. `realtime`: like a camera, at the bag's pace (times `rate`),
-best effort, never waiting for the nodes, the registration node on its default best-effort
-input; the summary then says how many camera frames got joints, at what rate, and with
-what latency (cloud published -> joints received). Every output topic is recorded (raw CDR, receive time) into DIR/output.mcap,
-one self-contained MCAP file (schemas and summary inside) that Foxglove opens and `ros2
-bag play DIR/output.mcap` plays; rosbags writes it as a bag
-directory, whose one file is moved into place when the recording closes, and skeleton.json / skeleton.bvh / registered.npz / skeleton.png are written
-from the received messages: the same files as `skel-extract run`.
+with their original header stamps, at the bag's pace scaled by `rate` (0 = as fast as the
+registration node takes them).
+- Lossless (the default): a frame is never published before the registration node has
+  answered the previous one, so the replay loses nothing however slow the machine is; the
+  printed rate says what was sustained.
+- `realtime`: like a camera, at the bag's pace (times `rate`), best effort, never waiting
+  for the nodes, the registration node on its default best-effort input; the summary then
+  says how many camera frames got joints, at what rate, and with what latency (cloud
+  published -> joints received).
+Every output topic and /diagnostics is recorded (raw CDR, receive time) into
+DIR/output.mcap, one self-contained MCAP file (schemas and summary inside) that Foxglove
+opens and `ros2 bag play DIR/output.mcap` plays (rosbags writes a bag directory; its one
+file is moved into place when the recording closes). skeleton.json / skeleton.bvh /
+registered.npz / skeleton.png are written from the received messages: the same files as
+`skel-extract run`.
 """
 from __future__ import annotations
 

@@ -19,24 +19,25 @@ registration term,
     E_GMM(V; x, tau) + alpha/2 E_Joint + gamma/2 sum_j |T_j - T_j^pred|^2
 
 by EM: the truncated E-step of core.gmm (Eq. 11) against the LBS-deformed rest points, the
-bone blocks with the data term lambda = P1_m w_mj^2 / tau, tau by Eq. (7). Where the
-paper is weak, for a camera:
+bone blocks with the data term lambda = P1_m w_mj^2 / tau, tau by Eq. (7); and, for a
+camera:
 - *prediction*: each bone starts from its constant-velocity prediction (its motion from
-  two frames back to the last, applied once more), and E_small pulls towards it, so a limb
-  that keeps moving is met where it will be rather than where it was;
+  two frames back to the last, applied once more), and E_small pulls towards it;
 - *reach*: each frame starts at tau = max(the last frame's converged tau, the mean squared
-  distance of the observations to the predicted model / 3), so a limb that moved further
-  than predicted (a foot 20 cm in a frame) is still within the E-step's truncation radius;
-  EM then shrinks tau back to the noise level;
+  distance of the observations to the predicted model / 3);
 - *unseen parts*: a point with no observation near it has P1 = 0 and only the joint term
-  and the prediction move its bone, so an occluded forearm goes with its elbow;
+  and the prediction move its bone;
 - *losing a limb*: a frame whose fit leaves tau far above the tracking noise, or a bone
-  without data, is reported `lost`, and the caller re-seeds the tracker from the newest
-  registered frame (the registration keeps running in the background and recaptures
-  lost limbs, core.recapture). Recapturing bones inside this tracker was tried (the same
-  core.recapture matching, bones turned about their joint): on a fast real wave it made
-  the fit worse (joints p95 19 cm off the offline ones against 13.5 cm with re-seeding
-  alone; without re-seeding the whole body was dragged off), so it is not done here.
+  without data, is reported `lost`, for the caller to re-seed the tracker from the newest
+  registered frame.
+Measured on real motion (bench/README.md, "Live joints without registration") this is not
+yet good enough to be the nodes' live path: it lags fast limbs (the whole body's small
+misfit sets the reach, so a hand 9 cm from its prediction is out of it; other starting
+taus were measured, none better), it is biased 1-2 cm on slow frames (only the visible
+side is observed, and unlike Alg. 2 nothing holds the far side), and holding the
+registration's joints of 3 frames earlier is closer to the offline joints on every row.
+Recapturing bones inside it (core.recapture, bones turned about their joint) made it worse
+and is not done.
 
     >>> tracker = ArticulatedTracker(model, JointParams())
     >>> tracker.seed(rotations, translations)           # (B, 3, 3), (B, 3): a known pose

@@ -199,7 +199,6 @@ class AccumulatorNode(Node):
                                f'{len(update.key_stamps)} key frames in {seconds:.1f} s'
                                + (f'; {changes}' if changes else ''))
 
-
     def destroy_node(self):
         self.extractor.stop()
         return super().destroy_node()

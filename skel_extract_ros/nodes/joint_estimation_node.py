@@ -176,7 +176,8 @@ class JointEstimationNode(Node):
             has_rest = self.rest is not None
         live = sorted(self.live_ms.copy())      # copy(): atomic against the appending thread
         if self.estimating:
-            level, state = OK, 'estimating joints (Alg. 2)' + (f'; tracking {n_joints} joints meanwhile' if tracking else '')
+            meanwhile = f'; tracking {n_joints} joints meanwhile' if tracking else ''
+            level, state = OK, 'estimating joints (Alg. 2)' + meanwhile
         elif tracking:
             level, state = OK, f'tracking {n_joints} joints'
         else:
