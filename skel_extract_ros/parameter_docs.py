@@ -145,6 +145,14 @@ README_BEGIN = '<!-- parameters:{node} (generated: python -m skel_extract_ros.pa
 README_END = '<!-- /parameters:{node} -->'
 
 
+def unset_value(hint):
+    """What a node declares for a method parameter whose default is None (unset): 0.0 for
+    an optional number ('automatic'), [] for an optional list ('unset'). hint: the field's
+    type hint."""
+    import typing
+    return 0.0 if float in typing.get_args(hint) else []
+
+
 def parameter_defaults(node: str) -> dict:
     """{name: default as the node declares it} of every parameter of a node, in declaration
     order: the method's dataclass fields (nested sections as `section.name`; an unset
@@ -168,9 +176,7 @@ def parameter_defaults(node: str) -> dict:
         hints = typing.get_type_hints(cls)
         for field in dataclasses.fields(cls):
             default = field.default
-            if default is None:
-                default = 0.0 if float in typing.get_args(hints[field.name]) else []
-            defaults[prefix + field.name] = default
+            defaults[prefix + field.name] = unset_value(hints[field.name]) if default is None else default
     return {**defaults, **NODE_ONLY[node]}
 
 

@@ -206,10 +206,6 @@ class ArticulatedTracker(_BoneBlocks):
         self.lost = False           # the last frame's fit is not to be trusted
         self._counts = np.maximum(np.bincount(self._dominant, minlength=self.n_bones), 1)
 
-    @property
-    def seeded(self) -> bool:
-        return bool(self._history)
-
     def seed(self, rotations: np.ndarray, translations: np.ndarray, tau: float | None = None) -> None:
         """Start (again) from a known pose: rotations (B, 3, 3), translations (B, 3), e.g.
         Alg. 2's or LiveJointTracker's fit of the newest registered frame; tau (m^2) its
@@ -266,13 +262,13 @@ class ArticulatedTracker(_BoneBlocks):
         self._history = (self._history + [(rotations.copy(), translations.copy())])[-2:]
         return rotations, translations
 
-    def _em(self, observed, rotations, translations, anchors, tau, iterations=None) -> tuple:
-        """EM in place on (rotations, translations); returns (tau, the last E-step's statistics
-        at the final pose, or None when no observation was in reach)."""
+    def _em(self, observed, rotations, translations, anchors, tau) -> tuple:
+        """`iterations` EM iterations in place on (rotations, translations); returns (tau, the
+        last E-step's statistics, or None when no observation was in reach)."""
         params = self.params
         deformed = self.deform(rotations, translations)
         stats = None
-        for _ in range(iterations or self.iterations):
+        for _ in range(self.iterations):
             stats = gmm_posteriors(observed, deformed, tau, params.omega, params.e_step_neighbours,
                                    params.truncation_sigmas)
             if stats.Np < 1e-9:

@@ -13,7 +13,7 @@ from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValu
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
                        qos_profile_sensor_data)
 
-from ..parameter_docs import describe
+from ..parameter_docs import describe, unset_value
 
 # Depth drivers publish best effort or reliable; a best-effort reader matches both.
 SENSOR_QOS = qos_profile_sensor_data
@@ -34,11 +34,11 @@ def _ros_default(field: dataclasses.Field, hint):
     """(value, descriptor type, dynamic) of a dataclass field as a ROS parameter; None
     defaults become 0.0 ('automatic') or [] ('unset')."""
     default = field.default
-    args = typing.get_args(hint)
     if default is None:
-        if float in args:
-            return 0.0, ParameterType.PARAMETER_DOUBLE, False
-        return [], ParameterType.PARAMETER_DOUBLE_ARRAY, True
+        value = unset_value(hint)
+        if isinstance(value, float):
+            return value, ParameterType.PARAMETER_DOUBLE, False
+        return value, ParameterType.PARAMETER_DOUBLE_ARRAY, True
     if isinstance(default, bool):
         return default, ParameterType.PARAMETER_BOOL, False
     if isinstance(default, int):
