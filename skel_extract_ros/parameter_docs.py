@@ -79,8 +79,11 @@ _REGISTRATION = {
               '(Image on depth/image, 16UC1 mm or 32FC1 m, with CameraInfo on depth/camera_info)', _ANY),
     'input_reliability': ('QoS of the points subscription: best_effort (sensor data, matches every driver) '
                           'or reliable (lossless bag replay; needs a reliable publisher)', _ANY),
-    'queue_size': ('clouds waiting for the registration at most; older ones are skipped (and counted) '
-                   'when processing falls behind the camera', (1, 100_000)),
+    'queue_size': ('subject clouds waiting for the registration at most; older ones are skipped (and '
+                   'counted) when registration falls behind the camera (filtered_points still comes for '
+                   'every cloud)', (1, 100_000)),
+    'lossless': ('never skip a cloud: when registration falls behind, segmentation waits for it and '
+                 'so does the input (bag replay with input_reliability reliable; replay sets it)', _ANY),
 }
 
 _ACCUMULATOR = {
@@ -126,6 +129,11 @@ _JOINTS = {
     'truncation_sigmas': ('truncated E-step: neighbour radius in standard deviations', (1.0, 100.0)),
     'min_tau': ('lower bound of tau, m^2', (0.0, INF)),
     'buffer_size': ('registered + filtered frames kept to find a structure window in', (2, 100_000)),
+    'live_frames': ('which frames get live joints: camera (every filtered_points frame, the learned skeleton '
+                    'fitted to its subject points, seeded with the newest registered frame; never waits for '
+                    'registration) or registered (registered frames only, as skel-extract run; lossless replay)',
+                    _ANY),
+    'live_iterations': ('EM iterations of the live fit to a camera frame', (1, 100)),
     'live_sweeps': ('live per-frame fit: bone-by-bone passes after the rigid initialisation', (0, 100)),
     'joint_diameter': ('diameter of the joint spheres in skeleton/markers, m', (1e-4, 10.0)),
 }

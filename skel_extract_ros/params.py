@@ -66,9 +66,11 @@ def _build(cls, values: dict, where: str):
 
 # Parameters of the nodes themselves (windowing, queues, display), not of the method.
 # Their defaults live here (the method's live in the core dataclasses).
-NODE_ONLY = {'registration_node': {'queue_size': 1, 'input_reliability': 'best_effort', 'input': 'cloud'},
+NODE_ONLY = {'registration_node': {'queue_size': 1, 'lossless': False, 'input_reliability': 'best_effort',
+                                   'input': 'cloud'},
              'accumulator_node': {'window_size': 60, 'sliding': False, 'stride': 30},
-             'joint_estimation_node': {'buffer_size': 300, 'live_sweeps': 2, 'joint_diameter': 0.04}}
+             'joint_estimation_node': {'buffer_size': 300, 'live_frames': 'camera', 'live_iterations': 3,
+                                       'live_sweeps': 2, 'joint_diameter': 0.04}}
 
 
 def _method_values(values: dict, node: str) -> dict:

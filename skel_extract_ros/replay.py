@@ -5,11 +5,13 @@ camera info on `depth/camera_info`, and the registration node set to input:=dept
 with their original header stamps, at the bag's pace scaled by `rate` (0 = as fast as the
 registration node takes them).
 - Lossless (the default): a frame is never published before the registration node has
-  answered the previous one, so the replay loses nothing however slow the machine is; the
-  printed rate says what was sustained.
+  segmented the previous one, the registration node never skips one (lossless:=true: its
+  segmentation waits for registration) and the joint node answers registered frames
+  (live_frames:=registered), so the replay loses nothing however slow the machine is and
+  gives the joints `skel-extract run` gives; the printed rate says what was sustained.
 - `realtime`: like a camera, at the bag's pace (times `rate`), best effort, never waiting
-  for the nodes, the registration node on its default best-effort input; the summary then
-  says how many camera frames got joints, at what rate, and with what latency (cloud
+  for the nodes, every node on its defaults (camera frames get live joints); the summary
+  then says how many camera frames got joints, at what rate, and with what latency (cloud
   published -> joints received).
 Every output topic and /diagnostics is recorded (raw CDR, receive time) into
 DIR/output.mcap, one self-contained MCAP file (schemas and summary inside) that Foxglove
@@ -86,9 +88,11 @@ def _start_nodes(params_file: Path | None, namespace: str | None, logs: Path, de
             command += ['--params-file', str(params_file)]
         if name == 'registration_node':
             if lossless:   # a lossless replay must not lose clouds (see the node)
-                command += ['-p', 'input_reliability:=reliable']
+                command += ['-p', 'input_reliability:=reliable', '-p', 'lossless:=true']
             if depth_image:
                 command += ['-p', 'input:=depth_image']
+        if name == 'joint_estimation_node' and lossless:   # the joints `run` gives: every registered frame
+            command += ['-p', 'live_frames:=registered']
         if namespace:
             command += ['-r', f'__ns:={namespace}']
         log = open(logs / f'{name}.log', 'w')
@@ -322,9 +326,12 @@ def replay(input_path, out, rate: float = 1.0, topic: str | None = None, params_
         if not recorder.wait_for(lambda: received.structure is not None, budget, alive):
             raise ReplayError('no skeleton/structure: ' + _log_tail(out / 'logs' / 'accumulator_node.log', 1))
 
+        # lossless: every registered frame gets joints; realtime: the window's frames (Alg. 2
+        # answers them), the camera frames only as fast as the live fit goes
+        must_have = (received.structure['window_stamps_ns'] if realtime else received.registered)
+
         def complete():
-            return (received.description is not None
-                    and all(s in received.joints for s in received.registered))
+            return received.description is not None and all(s in received.joints for s in must_have)
         if not recorder.wait_for(complete, budget, alive):
             raise ReplayError('joints missing for some frames: '
                               + _log_tail(out / 'logs' / 'joint_estimation_node.log', 1))

@@ -44,6 +44,32 @@ def test_a_deeper_queue_keeps_order_and_drops_the_oldest():
         worker.stop()
 
 
+def test_a_blocking_submit_waits_for_room_and_loses_nothing():
+    """Back-pressure (the registration node's lossless mode): a producer faster than the
+    worker is slowed down to it, nothing is dropped and the order is kept."""
+    seen = []
+    gate = threading.Semaphore(0)
+    worker = Worker(lambda item: (gate.acquire(timeout=5.0), seen.append(item)), 'test', capacity=1)
+    producer_done = threading.Event()
+
+    def produce():
+        for i in range(5):
+            worker.submit(i, block=True)
+        producer_done.set()
+
+    try:
+        threading.Thread(target=produce, daemon=True).start()
+        # the worker holds item 0, item 1 waits: the producer cannot get further
+        assert not producer_done.wait(0.3)
+        assert worker.stats()['waiting'] == 1
+        for _ in range(5):
+            gate.release()
+        assert producer_done.wait(5.0) and worker.wait_idle(5.0)
+        assert seen == [0, 1, 2, 3, 4] and worker.dropped == 0
+    finally:
+        worker.stop()
+
+
 def test_an_item_that_raises_is_reported_and_the_worker_goes_on():
     errors, seen = [], []
 

@@ -30,14 +30,16 @@ camera:
 - *losing a limb*: a frame whose fit leaves tau far above the tracking noise, or a bone
   without data, is reported `lost`, for the caller to re-seed the tracker from the newest
   registered frame.
-Measured on real motion (bench/README.md, "Live joints without registration") this is not
-yet good enough to be the nodes' live path: it lags fast limbs (the whole body's small
-misfit sets the reach, so a hand 9 cm from its prediction is out of it; other starting
-taus were measured, none better), it is biased 1-2 cm on slow frames (only the visible
-side is observed, and unlike Alg. 2 nothing holds the far side), and holding the
-registration's joints of 3 frames earlier is closer to the offline joints on every row.
-Recapturing bones inside it (core.recapture, bones turned about their joint) made it worse
-and is not done.
+The joint node (live_frames camera) seeds it on every camera frame with the model's fit of
+the newest registered frame and runs a few iterations: measured on real motion
+(bench/README.md, "Live joints at camera rate") that is about as close to the offline
+joints as holding the seed (p95 equal or slightly better, median equal or worse): it lags
+fast limbs (the whole body's small misfit sets the reach, so a hand 9 cm from its
+prediction is out of it; more iterations and other starting taus were measured, none
+better), and bones Alg. 2's weights drained are undetermined. Tracking from its own
+previous frames instead (seeded only when lost) was worse than holding; so was
+recapturing bones inside it (core.recapture, bones turned about their joint); an E-step
+over the model points the camera can see (registration.ObservedView) changed nothing.
 
     >>> tracker = ArticulatedTracker(model, JointParams())
     >>> tracker.seed(rotations, translations)           # (B, 3, 3), (B, 3): a known pose
@@ -209,15 +211,14 @@ class ArticulatedTracker(_BoneBlocks):
     def seed(self, rotations: np.ndarray, translations: np.ndarray, tau: float | None = None) -> None:
         """Start (again) from a known pose: rotations (B, 3, 3), translations (B, 3), e.g.
         Alg. 2's or LiveJointTracker's fit of the newest registered frame; tau (m^2) its
-        noise, when known. Forgets the velocity."""
+        noise, when known (None: the next frame's misfit sets it). Forgets the velocity."""
         rotations = np.array(rotations, dtype=np.float64)
         translations = np.array(translations, dtype=np.float64)
         if rotations.shape != (self.n_bones, 3, 3) or translations.shape != (self.n_bones, 3):
             raise ValueError(f'a seed needs ({self.n_bones}, 3, 3) rotations and ({self.n_bones}, 3) '
                              f'translations, got {rotations.shape} and {translations.shape}')
         self._history = [(rotations, translations)]
-        if tau is not None:
-            self.tau = max(float(tau), self.params.min_tau)
+        self.tau = None if tau is None else max(float(tau), self.params.min_tau)
         self.lost = False
 
     def predict(self) -> tuple:

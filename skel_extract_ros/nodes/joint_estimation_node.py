@@ -14,9 +14,18 @@ skeleton's key frames can be older than the buffer) on a Worker (nodes/worker.py
 a time; a structure that arrives meanwhile waits, a newer one replaces it), then joints and
 markers for every window frame that has none yet. Joint names carry the structure's
 stable joint ids.
-After that, every new registered frame gets the learned LBS model fitted to it
-(core.live) and its joints published: frames that arrived while Alg. 2 ran are caught
-up, none is skipped.
+After that, live joints (`live_frames`):
+- camera (default): every filtered_points frame (the registration node publishes one per
+  camera frame, before registering it) gets the learned model fitted to its subject
+  points (core.live.ArticulatedTracker, seeded with the model's fit of the newest
+  registered frame at or before it), on a latest-frame Worker: the joints never wait for
+  registration, and a frame the fit cannot keep up with is skipped and counted. A frame
+  whose fit reports the subject lost gets the seed's joints; a frame whose own
+  registered points are already in gets their fit. Registered frames that came while
+  Alg. 2 ran are caught up as below.
+- registered: every registered frame gets the model fitted to its registered points
+  (core.live.LiveJointTracker), as `skel-extract run` does: frames that arrived while
+  Alg. 2 ran are caught up, none is skipped (lossless replay).
 """
 from __future__ import annotations
 
@@ -33,13 +42,13 @@ from std_msgs.msg import String
 from visualization_msgs.msg import MarkerArray
 
 from ..core.joints import JointEstimation, JointParams
-from ..core.live import LiveJointTracker
+from ..core.live import ArticulatedTracker, LiveJointTracker
 from ..core.rigid import fit_rigid_segments
 from ..core.skeleton_model import SkeletonModel
 from ..core.structure import SkeletalStructure
 from ..params import joint_params_from_dict
-from .common import (LATCHED_QOS, STREAM_QOS, StampPairer, ThrottledLog, declare_node_parameters,
-                     decode_or_warn, decode_registered_or_warn, run_node)
+from .common import (LATCHED_QOS, STREAM_QOS, ParameterError, StampPairer, ThrottledLog,
+                     declare_node_parameters, decode_or_warn, decode_registered_or_warn, run_node)
 from .conversions import description_document, parse_structure, pose_array, skeleton_markers, stamp_ns
 from .diagnostics import OK, WARN, NodeDiagnostics
 from .worker import RateMeter, Worker
@@ -53,6 +62,9 @@ class JointEstimationNode(Node):
         self.params, values = declare_node_parameters(self, SECTION, JointParams, joint_params_from_dict)
         self.buffer_size, self.live_sweeps = values['buffer_size'], values['live_sweeps']
         self.joint_diameter = values['joint_diameter']
+        self.live_frames, self.live_iterations = values['live_frames'], values['live_iterations']
+        if self.live_frames not in ('camera', 'registered'):
+            raise ParameterError(f"parameter live_frames must be 'camera' or 'registered', got {self.live_frames!r}")
         self.log = ThrottledLog(self.get_logger())
         self.description_pub = self.create_publisher(String, 'skeleton/description', LATCHED_QOS)
         self.joints_pub = self.create_publisher(PoseArray, 'skeleton/joints', STREAM_QOS)
@@ -63,13 +75,17 @@ class JointEstimationNode(Node):
         self.kept = {}                            # the last structure's frames, by stamp, kept past the buffer
         self.pairer = StampPairer()
         self.registered_only = collections.OrderedDict()  # stamp -> (header, registered): live input
-        self.tracker = None
+        self.tracker = None                  # LiveJointTracker of the current model
+        self.articulated = None              # its ArticulatedTracker (live_frames camera)
+        self._seed = None                    # (registered stamp, rotations, translations) of the newest seed
         self.model_parents = None
         self.last_published = None           # stamp of the newest frame with joints published
         self._early_structure = None
         self.estimator = Worker(self._estimate, 'joints', capacity=1, on_error=self._estimation_failed)
         self.live_ms = collections.deque(maxlen=1000)      # per live frame fit
         self.registered_rate, self.joints_rate = RateMeter(), RateMeter()
+        self.live_fits = {'fitted': 0, 'lost': 0, 'registered': 0, 'too_few_points': 0}
+        self.live = Worker(self._live_camera_frame, 'live', capacity=1, on_error=self._live_failed)
         self.create_subscription(PointCloud2, 'rest_points', self._on_rest, LATCHED_QOS)
         self.create_subscription(PointCloud2, 'registered_points', self._on_registered, STREAM_QOS)
         self.create_subscription(PointCloud2, 'filtered_points', self._on_filtered, STREAM_QOS)
@@ -90,7 +106,7 @@ class JointEstimationNode(Node):
                 for stamp in [s for s in frames if s < rest_stamp]:
                     del frames[stamp]
             had_model = self.tracker is not None
-            self.tracker, self.last_published = None, None
+            self.tracker, self.articulated, self._seed, self.last_published = None, None, None, None
             early, self._early_structure = self._early_structure, None
         if had_model:
             self.get_logger().info('new rest pose: live joints pause until the next skeleton/structure')
@@ -99,8 +115,15 @@ class JointEstimationNode(Node):
 
     def _on_filtered(self, msg: PointCloud2) -> None:
         points = decode_or_warn(msg, self.log, 'filtered_points')
-        if points is not None:
-            self._pair(1, msg.header, points)
+        if points is None:
+            return
+        self._pair(1, msg.header, points)
+        if self.live_frames == 'camera' and self.tracker is not None:
+            if self.live.submit((msg.header, points)):
+                stats = self.live.stats()
+                self.log.warn('live_skipped', f'the live fit is slower than the camera: {stats["dropped"]} '
+                                              f'frame(s) skipped so far (median {stats["latency_ms_median"]:.0f} '
+                                              'ms per frame)')
 
     def _on_registered(self, msg: PointCloud2) -> None:
         self.registered_rate.tick()
@@ -113,7 +136,8 @@ class JointEstimationNode(Node):
             while len(self.registered_only) > self.buffer_size:
                 self.registered_only.popitem(last=False)
         self._pair(0, msg.header, points)
-        self._publish_live()
+        if self.live_frames == 'registered':
+            self._publish_live()
 
     def _pair(self, side: int, header, points) -> None:
         stamp = stamp_ns(header)
@@ -187,7 +211,9 @@ class JointEstimationNode(Node):
             'live_fit_ms_median': live[len(live) // 2] if live else float('nan'),
             'live_fit_ms_p95': live[int(0.95 * (len(live) - 1))] if live else float('nan'),
             'estimations': self.estimator.processed, 'failed': self.estimator.failed,
-            'structures_replaced': self.estimator.dropped, 'joints': n_joints}
+            'structures_replaced': self.estimator.dropped, 'joints': n_joints, 'live_frames': self.live_frames,
+            'camera_frames_skipped': self.live.dropped, 'camera_frames_in_hz': self.live.rate_in.rate(),
+            **{f'live_{k}': v for k, v in self.live_fits.items()}}
 
     def _estimation_failed(self, _job, error) -> None:
         self.get_logger().error(f'joint estimation failed: {type(error).__name__}: {error} '
@@ -206,6 +232,7 @@ class JointEstimationNode(Node):
         model = SkeletonModel(rest, labels, estimate.parents, estimate.joints, estimate.influences,
                               estimate.weights, document['joint_ids'])
         tracker = LiveJointTracker(model, self.params, self.live_sweeps)
+        articulated = ArticulatedTracker(model, self.params, iterations=self.live_iterations)
         description = description_document(model, document['frame_id'], stamps, document['changes'])
         self.description_pub.publish(String(data=json.dumps(description)))
         with self._lock:
@@ -216,7 +243,8 @@ class JointEstimationNode(Node):
             if done is None or stamp > done:
                 self._publish_joints(header, positions, model.parents)
         with self._lock:
-            self.tracker, self.model_parents = tracker, model.parents
+            self.tracker, self.articulated, self.model_parents = tracker, articulated, model.parents
+            self._seed = None
             # sliding windows: frames after this window may have live joints from the
             # previous model already; they are not published twice
             self.last_published = max(stamps[-1], self.last_published or stamps[-1])
@@ -240,6 +268,48 @@ class JointEstimationNode(Node):
             self.live_ms.append(1000.0 * (time.perf_counter() - started))
             self._publish_joints(header, positions, parents)
 
+    def _live_camera_frame(self, item) -> None:
+        """Joints for one camera frame (live_frames camera), on the live Worker."""
+        header, observed = item
+        stamp = stamp_ns(header)
+        with self._lock:
+            if self.tracker is None or (self.last_published is not None and stamp <= self.last_published):
+                return
+            seeds = [s for s in self.registered_only if s <= stamp]
+            if not seeds:
+                return
+            seed_stamp = seeds[-1]
+            registered = self.registered_only[seed_stamp][1]
+            tracker, articulated, parents, seed = self.tracker, self.articulated, self.model_parents, self._seed
+            self.last_published = stamp
+        started = time.perf_counter()
+        if seed is None or seed[0] != seed_stamp:
+            seed = (seed_stamp, *tracker.fit(registered))
+            with self._lock:
+                if self.tracker is tracker:
+                    self._seed = seed
+        if seed_stamp == stamp:
+            positions, outcome = tracker.joints_of(*seed[1:]), 'registered'
+        elif np.isfinite(observed).all(axis=1).sum() < 10:
+            self.log.warn('live_empty', f'camera frame at {stamp * 1e-9:.3f} s has {len(observed)} subject '
+                                        'points: no live joints (subject out of view?)')
+            self.live_fits['too_few_points'] += 1
+            return
+        else:
+            articulated.seed(*seed[1:])
+            positions = articulated.track(observed)
+            outcome = 'fitted'
+            if articulated.lost:
+                # the fit left data unexplained: the newest registered pose is the better answer
+                positions, outcome = tracker.joints_of(*seed[1:]), 'lost'
+        self.live_fits[outcome] += 1
+        self.live_ms.append(1000.0 * (time.perf_counter() - started))
+        self._publish_joints(header, positions, parents)
+
+    def _live_failed(self, item, error) -> None:
+        self.log.warn('live_failed', f'live joints for the camera frame at {stamp_ns(item[0].header) * 1e-9:.3f} s '
+                                     f'failed: {type(error).__name__}: {error}')
+
     def _publish_joints(self, header, positions, parents) -> None:
         self.joints_rate.tick()
         self.joints_pub.publish(pose_array(positions, header))
@@ -247,6 +317,7 @@ class JointEstimationNode(Node):
 
     def destroy_node(self):
         self.estimator.stop()
+        self.live.stop()
         return super().destroy_node()
 
 

@@ -13,16 +13,22 @@ Services    ~/reset           std_srvs/Trigger: forget the rest pose, build a ne
             ~/reset_background std_srvs/Trigger: forget the learned scene (planes, motion
                               evidence, the subject) after the camera moved
 
-Every cloud is segmented first (core/segmentation.py): only the subject, the connected
-region that moves, is preprocessed, published on filtered_points and registered; the rest
-pose waits until the subject is wholly in view.
-
-Registration takes longer than a camera frame, so clouds are taken off the executor by
-a cheap callback and processed by one Worker (nodes/worker.py) holding at most
-`queue_size` waiting clouds; when it is full the oldest cloud is skipped, counted and
-reported.
+Two stages, each on its own Worker (nodes/worker.py), so the subject reaches the live path
+at camera rate whatever registration costs:
+- the *camera stage* (latest cloud only) decodes every cloud, segments it
+  (core/segmentation.py: only the subject, the connected region that moves, is kept),
+  preprocesses it and publishes it on filtered_points at once: the joint node fits the
+  skeleton to it;
+- the *registration stage* registers the subject clouds it is given (Alg. 1), holding at
+  most `queue_size` waiting ones: when it falls behind, the oldest waiting cloud is skipped,
+  counted and reported, so it always works on recent frames. With `lossless` nothing is
+  skipped: the camera stage waits for room (back-pressure; for bag replay with reliable
+  input). The rest pose waits until the subject is wholly in view.
 """
 from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
 
 import numpy as np
 from rclpy.node import Node
@@ -46,6 +52,19 @@ from .worker import Worker
 SECTION = 'registration_node'
 
 
+@dataclass
+class _SubjectFrame:
+    """What the camera stage hands to the registration stage: the epoch of the rest pose it
+    belongs to, the cloud's header, the preprocessed subject (N, 3) m, the segmentation
+    result (for the rest pose's wait for a whole subject) and the valid points of the cloud."""
+
+    epoch: int
+    header: object
+    observed: np.ndarray
+    segmentation: object
+    n_valid: int
+
+
 class RegistrationNode(Node):
     def __init__(self, **kwargs):
         super().__init__('registration_node', **kwargs)
@@ -54,6 +73,7 @@ class RegistrationNode(Node):
         values['preprocess'] = declare_dataclass(self, SECTION, PreprocessParams, 'preprocess.')
         values['segmentation'] = declare_dataclass(self, SECTION, SegmentationParams, 'segmentation.')
         self.queue_size = declare(self, SECTION, 'queue_size', NODE_ONLY[SECTION]['queue_size'])
+        self.lossless = declare(self, SECTION, 'lossless', NODE_ONLY[SECTION]['lossless'])
         reliability = declare(self, SECTION, 'input_reliability', NODE_ONLY[SECTION]['input_reliability'])
         if reliability not in ('best_effort', 'reliable'):
             raise ParameterError(f"parameter input_reliability must be 'best_effort' or 'reliable', "
@@ -72,11 +92,20 @@ class RegistrationNode(Node):
         self.rest_pub = self.create_publisher(PointCloud2, 'rest_points', LATCHED_QOS)
         self.create_service(Trigger, '~/reset', self._on_reset)
         self.create_service(Trigger, '~/reset_background', self._on_reset_background)
-        # set by the services, acted on by the worker before its next cloud
+        # set by the services, acted on by the camera stage before its next cloud
         self._background_reset_requested = False
         self._reset_requested = False
-        self._start_over()
-        self.worker = Worker(self._work, 'registration', capacity=self.queue_size, on_error=self._failed)
+        # a new rest pose is wanted: the camera stage counts epochs, the registration
+        # stage starts over when a cloud of a newer epoch reaches it (skips cannot lose it)
+        self.epoch, self._registration_epoch = 0, 0
+        self._start_camera()
+        self._start_registration()
+        self._done = 0                 # clouds finished by either stage (tests, diagnostics)
+        self._count_lock = threading.Lock()
+        self.last_registration_status = 'no frame yet'
+        self.camera = Worker(self._observe, 'camera', capacity=1, on_error=self._failed)
+        self.registrar = Worker(self._register, 'registration', capacity=self.queue_size,
+                                on_error=self._registration_failed)
         self.last_status = ''          # what happened to the newest cloud, for /diagnostics
         self._reported_skips = 0
         self.diagnostics = NodeDiagnostics(self, self._diagnostics)
@@ -101,21 +130,27 @@ class RegistrationNode(Node):
 
     def _on_cloud(self, msg) -> None:
         """A PointCloud2, or a depth Image (queued with the camera info it goes with)."""
-        if self.worker.submit((msg, self.camera_info)):
-            stats = self.worker.stats()
-            self.log.warn('skipped', f'registration is slower than the input: {stats["dropped"]} cloud(s) '
-                                     f'skipped so far (queue_size {self.queue_size}; median '
-                                     f'{stats["latency_ms_median"]:.0f} ms per frame)')
+        if self.camera.submit((msg, self.camera_info)):
+            self._warn_skipped()
+
+    def _warn_skipped(self) -> None:
+        camera, registration = self.camera.stats(), self.registrar.stats()
+        self.log.warn('skipped', f'{camera["dropped"]} cloud(s) skipped so far before segmentation '
+                                 f'(median {camera["latency_ms_median"]:.0f} ms per cloud) and '
+                                 f'{registration["dropped"]} skipped for registration (queue_size '
+                                 f'{self.queue_size}; median {registration["latency_ms_median"]:.0f} ms '
+                                 'per frame): the newest frames are registered')
 
     @property
     def skipped(self) -> int:
-        """Clouds dropped unprocessed because the queue was full."""
-        return self.worker.dropped
+        """Clouds dropped unprocessed (by either stage) because its queue was full."""
+        return self.camera.dropped + self.registrar.dropped
 
     @property
     def processed(self) -> int:
-        """Clouds the worker has handled (registered or not)."""
-        return self.worker.processed
+        """Clouds handled to the end (registered, refused, or not passed on by the camera
+        stage); processed + skipped reaches the clouds received."""
+        return self._done
 
     def _on_reset(self, _request, response):
         self._reset_requested = True
@@ -131,17 +166,24 @@ class RegistrationNode(Node):
         self.get_logger().info('background reset requested')
         return response
 
-    # -- worker side ---------------------------------------------------------------------
-    def _start_over(self) -> None:
+    # -- camera stage ----------------------------------------------------------------------
+    def _start_camera(self) -> None:
         self.segmenter = SubjectSegmenter(self.segmentation_params)
-        self.partial_frames = 0
         self.preprocessor = Preprocessor(self.preprocess_params)
-        self.registration = None
-        self.rest_pose = None
         self.last_stamp = None
         self.frame_id = None
 
-    def _work(self, item) -> None:
+    def _start_registration(self) -> None:
+        self.partial_frames = 0
+        self.registration = None
+        self.rest_pose = None
+
+    def _start_over(self) -> None:
+        """A new rest pose from the next good cloud (the registration stage sees the epoch)."""
+        self._start_camera()
+        self.epoch += 1
+
+    def _observe(self, item) -> None:
         msg, info = item
         if self._reset_requested:
             self._reset_requested = False
@@ -149,34 +191,43 @@ class RegistrationNode(Node):
         if self._background_reset_requested:
             self._background_reset_requested = False
             self.segmenter.reset()
-        self._process(msg, info)
-        if (self.worker.processed + 1) % 100 == 0:
-            stats = self.worker.stats()
-            self.get_logger().info(f'{self.worker.processed + 1} clouds processed, latency median '
-                                   f'{stats["latency_ms_median"]:.0f} ms, p95 {stats["latency_ms_p95"]:.0f} ms, '
-                                   f'{stats["dropped"]} skipped')
+        if not self._segment_and_pass_on(msg, info):
+            self._finished()
 
     def _diagnostics(self) -> tuple:
         """(level, state, values) for /diagnostics: WARN while there is no rest pose or
-        when clouds were skipped since the last report."""
-        stats = self.worker.stats()
-        new_skips, self._reported_skips = stats['dropped'] - self._reported_skips, stats['dropped']
-        if stats['submitted'] == 0:
+        when clouds were skipped since the last report. rate_out_hz / latency: the
+        registration stage; filtered_*: the camera stage (what the live path gets)."""
+        camera, registration = self.camera.stats(), self.registrar.stats()
+        skipped = camera['dropped'] + registration['dropped']
+        new_skips, self._reported_skips = skipped - self._reported_skips, skipped
+        if camera['submitted'] == 0:
             level, state = WARN, f'waiting for input on {self.resolve_topic_name("points")}'
         elif self.registration is None:
             level, state = WARN, f'waiting for the subject (no rest pose yet): {self.last_status}'
         else:
-            level, state = (WARN if new_skips else OK), f'registering: {self.last_status}'
+            level, state = ((WARN if new_skips else OK),
+                            f'registering: {self.last_status}, {self.last_registration_status}')
         return level, state, {
-            'rate_in_hz': stats['rate_in_hz'], 'rate_out_hz': stats['rate_hz'],
-            'latency_ms_median': stats['latency_ms_median'], 'latency_ms_p95': stats['latency_ms_p95'],
-            'clouds_in': stats['submitted'], 'processed': stats['processed'], 'skipped': stats['dropped'],
-            'failed': stats['failed'], 'waiting': stats['waiting'], 'queue_size': self.queue_size,
+            'rate_in_hz': camera['rate_in_hz'], 'filtered_rate_hz': camera['rate_hz'],
+            'filtered_latency_ms_median': camera['latency_ms_median'],
+            'rate_out_hz': registration['rate_hz'],
+            'latency_ms_median': registration['latency_ms_median'],
+            'latency_ms_p95': registration['latency_ms_p95'],
+            'clouds_in': camera['submitted'], 'processed': self.processed, 'skipped': skipped,
+            'skipped_for_registration': registration['dropped'],
+            'failed': camera['failed'] + registration['failed'], 'waiting': registration['waiting'],
+            'queue_size': self.queue_size, 'lossless': self.lossless,
             'rest_points': 0 if self.rest_pose is None else len(self.rest_pose.points)}
 
     def _failed(self, item, error) -> None:
         """A cloud whose processing raised: one throttled line, the node goes on."""
+        self._finished()
         self.log.warn('failed', f'cloud at {stamp_ns(item[0].header) * 1e-9:.3f} s failed: '
+                                f'{type(error).__name__}: {error}')
+
+    def _registration_failed(self, item, error) -> None:
+        self.log.warn('failed', f'registration of the cloud at {stamp_ns(item.header) * 1e-9:.3f} s failed: '
                                 f'{type(error).__name__}: {error}')
 
     def _decode(self, msg, info) -> tuple:
@@ -199,11 +250,13 @@ class RegistrationNode(Node):
             return None
         return cloud.reshape(-1, 3), cloud.shape[0], cloud.shape[1]
 
-    def _process(self, msg, info=None) -> None:
+    def _segment_and_pass_on(self, msg, info) -> bool:
+        """Decode, segment and preprocess one cloud, publish the subject on filtered_points
+        and hand it to the registration stage; False when the cloud goes no further."""
         stamp, frame_id = stamp_ns(msg.header), msg.header.frame_id
         decoded = self._decode(msg, info)
         if decoded is None:
-            return
+            return False
         raw, height, width = decoded
         if len(raw) > self.preprocess_params.max_input_points:
             self.log.warn('large', f'cloud of {len(raw)} points: randomly thinned to '
@@ -211,15 +264,15 @@ class RegistrationNode(Node):
         if self.last_stamp is not None:
             if stamp == self.last_stamp:
                 self.log.warn('duplicate', f'ignoring a second cloud with stamp {stamp * 1e-9:.3f} s')
-                return
+                return False
             if stamp < self.last_stamp:
                 self.log.always(f'stamps went back by {(self.last_stamp - stamp) * 1e-9:.3f} s '
-                                          '(bag looped or clock reset): starting over with a new rest pose')
+                                '(bag looped or clock reset): starting over with a new rest pose')
                 self._start_over()
             elif frame_id != self.frame_id:
                 self.log.always(f'frame_id changed from {self.frame_id!r} to {frame_id!r}: the '
-                                          'registered points would mix coordinate frames; starting over '
-                                          'with a new rest pose')
+                                'registered points would mix coordinate frames; starting over '
+                                'with a new rest pose')
                 self._start_over()
         self.last_stamp, self.frame_id = stamp, frame_id
         segmentation = self.segmenter(raw, height, width)
@@ -235,6 +288,24 @@ class RegistrationNode(Node):
                                 throttle_duration_sec=1.0)
         observed = self.preprocessor(raw[segmentation.mask])
         self.filtered_pub.publish(cloud_message(observed, msg.header))
+        frame = _SubjectFrame(self.epoch, msg.header, observed, segmentation,
+                              int(np.isfinite(raw).all(axis=1).sum()))
+        if self.registrar.submit(frame, block=self.lossless):
+            self._warn_skipped()
+        return True
+
+    # -- registration stage ------------------------------------------------------------------
+    def _register(self, frame: '_SubjectFrame') -> None:
+        try:
+            self._register_frame(frame)
+        finally:
+            self._finished()
+
+    def _register_frame(self, frame: '_SubjectFrame') -> None:
+        if frame.epoch != self._registration_epoch:
+            self._registration_epoch = frame.epoch
+            self._start_registration()
+        stamp, observed, segmentation = stamp_ns(frame.header), frame.observed, frame.segmentation
         if self.registration is None:
             waiting = waits_for_subject(segmentation, self.partial_frames)
             self.partial_frames += int(segmentation.touches_border)
@@ -245,7 +316,7 @@ class RegistrationNode(Node):
                 return
             if len(observed) < max(100, self.rest_params.n_points // 10):
                 self.log.warn('no_rest', f'no rest pose yet: only {len(observed)} points after preprocessing '
-                                         f'(of {np.isfinite(raw).all(axis=1).sum()} valid); is the subject in view?')
+                                         f'(of {frame.n_valid} valid); is the subject in view?')
                 return
             try:
                 self.rest_pose = RestPose.from_points(observed, self.rest_params)
@@ -253,19 +324,30 @@ class RegistrationNode(Node):
                 self.log.warn('no_rest', f'no rest pose from this cloud: {error}')
                 return
             self.registration = NonRigidRegistration(self.rest_pose.points, self.params)
-            self.rest_pub.publish(cloud_message(self.rest_pose.points, msg.header, float64=True))
+            self.rest_pub.publish(cloud_message(self.rest_pose.points, frame.header, float64=True))
             self.get_logger().info(f'rest pose built from the cloud at {stamp * 1e-9:.3f} s '
-                                   f'({len(self.rest_pose.points)} points, frame {frame_id!r})')
+                                   f'({len(self.rest_pose.points)} points, frame {frame.header.frame_id!r})')
         result = self.registration.register_frame(observed)
-        self.last_status = f'frame {result.status}'
+        self.last_registration_status = f'frame {result.status}'
         if result.status != STATUS_OK:
-            self.log.warn(f'status:{result.status}:{len(observed) == 0}', f'cloud at {stamp * 1e-9:.3f} s not registered ({result.status}: '
-                                    f'{len(observed)} points after preprocessing); holding the last pose')
+            self.log.warn(f'status:{result.status}:{len(observed) == 0}',
+                          f'cloud at {stamp * 1e-9:.3f} s not registered ({result.status}: '
+                          f'{len(observed)} points after preprocessing); holding the last pose')
             return
-        self.registered_pub.publish(cloud_message(result.points, msg.header))
+        self.registered_pub.publish(cloud_message(result.points, frame.header))
+        if self.registrar.processed % 100 == 99:
+            stats = self.registrar.stats()
+            self.get_logger().info(f'{self.registrar.processed + 1} clouds registered, latency median '
+                                   f'{stats["latency_ms_median"]:.0f} ms, p95 {stats["latency_ms_p95"]:.0f} ms, '
+                                   f'{self.skipped} skipped')
+
+    def _finished(self) -> None:
+        with self._count_lock:
+            self._done += 1
 
     def destroy_node(self):
-        self.worker.stop()
+        self.camera.stop()
+        self.registrar.stop()
         return super().destroy_node()
 
 

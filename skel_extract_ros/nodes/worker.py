@@ -62,9 +62,13 @@ class Worker:
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._thread.start()
 
-    def submit(self, item) -> int:
-        """Queue `item`; returns how many waiting items this dropped (0 or more)."""
+    def submit(self, item, block: bool = False) -> int:
+        """Queue `item`; returns how many waiting items this dropped (0 or more). block:
+        wait for room instead of dropping (back-pressure, for lossless processing; never
+        from an executor callback)."""
         with self._wake:
+            while block and len(self._waiting) >= self.capacity and not self._stopping:
+                self._wake.wait()
             self._waiting.append((time.monotonic(), item))
             self.submitted += 1
             self.rate_in.tick()
@@ -73,7 +77,7 @@ class Worker:
                 self._waiting.popleft()
                 dropped += 1
             self.dropped += dropped
-            self._wake.notify()
+            self._wake.notify_all()
         return dropped
 
     def clear(self) -> int:
@@ -114,7 +118,7 @@ class Worker:
         with self._wake:
             self._stopping = True
             self._waiting.clear()
-            self._wake.notify()
+            self._wake.notify_all()
         if self._thread is not threading.current_thread():
             self._thread.join(timeout=timeout)
 
@@ -127,6 +131,7 @@ class Worker:
                     return
                 submitted_at, item = self._waiting.popleft()
                 self._busy = True
+                self._wake.notify_all()          # room for a blocked submit
             try:
                 self._process(item)
                 ok = True
