@@ -331,7 +331,10 @@ def replay(input_path, out, rate: float = 1.0, topic: str | None = None, params_
         must_have = (received.structure['window_stamps_ns'] if realtime else received.registered)
 
         def complete():
-            return received.description is not None and all(s in received.joints for s in must_have)
+            # markers follow each joints message: the last ones must be in before the nodes stop
+            # (the sample bag's test once recorded 58 markers for 59 joints)
+            return (received.description is not None and all(s in received.joints for s in must_have)
+                    and received.counts.get('skeleton/markers', 0) >= received.counts.get('skeleton/joints', 0))
         if not recorder.wait_for(complete, budget, alive):
             raise ReplayError('joints missing for some frames: '
                               + _log_tail(out / 'logs' / 'joint_estimation_node.log', 1))

@@ -144,7 +144,8 @@ def test_joint_node_follows_a_growing_structure_with_old_key_frames_and_stable_n
     structure's are kept), its names carry the joint ids, its description says what changed,
     and no frame gets joints twice."""
     rest, registered, _, _, _ = two_bone_sequence(n_frames=16)
-    node = ros.add(JointEstimationNode, parameter_overrides=[Parameter('buffer_size', value=8)])
+    node = ros.add(JointEstimationNode, parameter_overrides=[Parameter('buffer_size', value=8),
+                                                          Parameter('live_frames', value='registered')])
     joints = ros.listen('skeleton/joints', PoseArray, STREAM_QOS)
     descriptions = ros.listen('skeleton/description', String, LATCHED_QOS)
     publish_rest(ros, rest)

@@ -71,7 +71,9 @@ def test_node_in_a_room_waits_for_the_subject_and_registers_only_it(ros, walk_in
     ros.wait_matched(pub)
     for i, (points, stamp) in enumerate(zip(walk_in.clouds, walk_in.stamps_ns)):
         pub.publish(cloud(points, stamp))
-        ros.wait(lambda: len(filtered) == i + 1, what=f'filtered frame {i}')
+        # one at a time: the node publishes filtered_points before it registers, and a
+        # cloud right behind would replace a frame still waiting for the registration
+        ros.wait(lambda: len(filtered) == i + 1 and node.processed == i + 1, what=f'frame {i} handled')
     ros.wait(lambda: len(rests) == 1, what='rest pose')
     # nobody in view at first: said (throttled), nothing registered, no rest pose from the room
     assert any('nobody in view' in line for line in node.log.history)
@@ -98,12 +100,15 @@ def test_node_reads_depth_images(ros, walk_in):
     images.publish(first_image)
     ros.wait(lambda: any('CameraInfo' in line for line in node.log.history), what='no camera info warning')
     depths = []
+    ros.wait(lambda: node.processed == 1, what='the image without camera info handled')
     for i, (points, stamp) in enumerate(zip(walk_in.clouds, walk_in.stamps_ns)):
         # RealSense-style rows padded to 64 bytes
         image, info = depth_messages(points[..., 2], stamp, walk_in.ground_truth['intrinsics'], pad=64 - 640 % 64)
         infos.publish(info)
         images.publish(image)
-        ros.wait(lambda: len(filtered) == i + 1, what=f'filtered frame {i}')
+        # one at a time: the node publishes filtered_points before it registers, and a
+        # cloud right behind would replace a frame still waiting for the registration
+        ros.wait(lambda: len(filtered) == i + 1 and node.processed == i + 2, what=f'frame {i} handled')
         depths.append(points)
     ros.wait(lambda: len(registered) >= 1, what='registered frames')
     # the depth-image path is the cloud path after millimetre rounding
