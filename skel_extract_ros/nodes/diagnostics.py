@@ -3,7 +3,7 @@ on the absolute topic `/diagnostics` (what rqt_robot_monitor and diagnostic_aggr
 read), named by the node's fully qualified name, with its state as the message and its
 rates, latencies and counts as key/values (README, "Diagnostics").
 
-    >>> rate = RateMeter()
+    >>> rate = RateMeter()                            # nodes.worker.RateMeter
     >>> rate.tick()                                   # on every message
     >>> NodeDiagnostics(node, lambda: (OK, 'tracking', {'rate_in_hz': rate.rate()}))
 """
@@ -12,8 +12,6 @@ from __future__ import annotations
 from typing import Callable
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-
-from .worker import RateMeter  # noqa: F401  (re-exported: the nodes count their inputs with it)
 
 OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
 PERIOD_S = 1.0

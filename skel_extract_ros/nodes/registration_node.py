@@ -337,7 +337,7 @@ class RegistrationNode(Node):
         self.registered_pub.publish(cloud_message(result.points, frame.header))
         if self.registrar.processed % 100 == 99:
             stats = self.registrar.stats()
-            self.get_logger().info(f'{self.registrar.processed + 1} clouds registered, latency median '
+            self.get_logger().info(f'{self.registrar.processed + 1} frames through registration, latency median '
                                    f'{stats["latency_ms_median"]:.0f} ms, p95 {stats["latency_ms_p95"]:.0f} ms, '
                                    f'{self.skipped} skipped')
 
@@ -346,8 +346,9 @@ class RegistrationNode(Node):
             self._done += 1
 
     def destroy_node(self):
-        self.camera.stop()
+        # the registration stage first: a lossless camera stage blocked on it wakes at once
         self.registrar.stop()
+        self.camera.stop()
         return super().destroy_node()
 
 
