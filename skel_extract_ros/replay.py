@@ -69,6 +69,7 @@ class Received:
     description: dict | None = None
     frame_id: str = ''
     counts: dict = field(default_factory=dict)            # topic -> messages
+    accumulator: dict = field(default_factory=dict)       # its newest /diagnostics values (str)
 
 
 def _ros_type(name: str):
@@ -156,7 +157,7 @@ class _Recorder:
         now = time.perf_counter()
         self.writer.write(self.connections[topic], time.time_ns(), raw)
         # recorded only: markers and diagnostics are not needed for the files
-        msg = None if topic in ('skeleton/markers', '/diagnostics') else self._deserialize(raw, _ros_type(type_name))
+        msg = None if topic == 'skeleton/markers' else self._deserialize(raw, _ros_type(type_name))
         r = self.received
         with self.condition:
             r.counts[topic] = r.counts.get(topic, 0) + 1
@@ -176,6 +177,10 @@ class _Recorder:
             elif topic == 'skeleton/joints':
                 stamp = stamp_ns(msg.header)
                 r.joints[stamp], r.joints_at[stamp] = pose_array_positions(msg), now
+            elif topic == '/diagnostics':
+                for status in msg.status:
+                    if status.name.endswith('/accumulator_node'):
+                        r.accumulator = {kv.key: kv.value for kv in status.values}
             self.condition.notify_all()
 
     def wait_for(self, predicate, timeout: float, alive=None) -> bool:
@@ -314,6 +319,17 @@ def replay(input_path, out, rate: float = 1.0, topic: str | None = None, params_
             raise ReplayError('no cloud was registered (no rest pose: is the subject in view? '
                               f'{_log_tail(out / "logs" / "registration_node.log")})')
         if received.structure is None:
+            # the accumulator can be behind the recorder (and pairs complete in any order):
+            # the window must hold every replayed frame, as `run`'s does (its 1 Hz diagnostics tell)
+            def collected():
+                values = received.accumulator
+                return bool(values) and int(values['frames']) >= min(int(values['window_size']),
+                                                                    len(received.registered)) \
+                    and int(values['newest_stamp_ns']) >= max(received.registered)
+            if not recorder.wait_for(collected, 10.0, alive):
+                print('skel-extract replay: the accumulator did not report every registered frame '
+                      f'within 10 s ({received.accumulator.get("frames", "no")} frames); extracting anyway',
+                      file=sys.stderr)
             client = node.create_client(Trigger, 'accumulator_node/extract')
             if not client.wait_for_service(timeout_sec=30.0):
                 raise ReplayError('accumulator_node/extract is not available')

@@ -3,6 +3,7 @@ node's buffer (overflow, frames arriving during Alg. 2), on real DDS in process.
 import json
 
 import numpy as np
+import pytest
 from geometry_msgs.msg import PoseArray
 from rclpy.parameter import Parameter
 from std_msgs.msg import String
@@ -113,6 +114,50 @@ def structure_message(rest, registered, first):
     structure = extract_structure(rest, registered, StructureParams(n_clusters=12))
     stamps = [T0 + (first + i) * DT for i in range(len(registered))]
     return String(data=json.dumps(structure_document(structure, T0, stamps, 'camera_depth_optical_frame')))
+
+
+def test_a_pair_completed_late_joins_the_window_in_stamp_order(ros):
+    """Frame 3's filtered cloud comes after frame 9's (a fragmented cloud resent late): the
+    window still holds frames 0-9 in order. Before, frame 3 was ignored as not newer than
+    the last frame, the window never filled and no structure came."""
+    rest, registered, _, _, _ = two_bone_sequence(n_frames=10)
+    node = ros.add(AccumulatorNode, parameter_overrides=[Parameter('window_size', value=10),
+                                                         Parameter('n_clusters', value=12)])
+    structures = ros.listen('skeleton/structure', String, LATCHED_QOS)
+    publish_rest(ros, rest)
+    publishers = {t: ros.publisher(t, PointCloud2, STREAM_QOS) for t in ('registered_points', 'filtered_points')}
+    for pub in publishers.values():
+        ros.wait_matched(pub)
+    for i, frame in enumerate(registered):
+        publishers['registered_points'].publish(cloud_message(frame, header(T0 + i * DT)))
+        if i != 3:
+            publishers['filtered_points'].publish(cloud_message(frame, header(T0 + i * DT)))
+    ros.wait(lambda: len(node.frames) == 9, what='the nine complete pairs')
+    publishers['filtered_points'].publish(cloud_message(registered[3], header(T0 + 3 * DT)))
+    ros.wait(lambda: len(structures) == 1, what='the structure of the full window')
+    assert window_of(json.loads(structures[0].data)) == list(range(10))
+
+
+@pytest.mark.parametrize('live_frames', ['registered', 'camera'])
+def test_registered_frames_left_out_of_the_window_get_joints(ros, live_frames):
+    """A structure whose window misses frame 5 (its pair completed after the extraction):
+    frame 5 still gets joints, tracked by the model, on the true joint. Before, only frames
+    newer than the window were tracked and frame 5 never had joints."""
+    rest, registered, _, _, joint_path = two_bone_sequence(n_frames=12)
+    node = ros.add(JointEstimationNode, parameter_overrides=[Parameter('live_frames', value=live_frames)])
+    joints = ros.listen('skeleton/joints', PoseArray, STREAM_QOS)
+    publish_rest(ros, rest)
+    publish_frames(ros, registered, 0)
+    ros.wait(lambda: len(node.buffer) == 12, what='the frames buffered')
+    window = [i for i in range(12) if i != 5]
+    structure = extract_structure(rest, registered[window], StructureParams(n_clusters=12))
+    document = structure_document(structure, T0, [T0 + i * DT for i in window], 'camera_depth_optical_frame')
+    ros.publisher('skeleton/structure', String, LATCHED_QOS).publish(String(data=json.dumps(document)))
+    ros.wait(lambda: len(joints) == 12, what='joints for every registered frame')
+    assert sorted(stamps_of(joints)) == [T0 + i * DT for i in range(12)]
+    frame_5 = next(m for m in joints if m.header.stamp.sec * 10**9 + m.header.stamp.nanosec == T0 + 5 * DT)
+    positions = np.array([[p.position.x, p.position.y, p.position.z] for p in frame_5.poses])
+    assert np.linalg.norm(positions - joint_path[5], axis=1).min() < 3e-3
 
 
 def test_joint_node_buffer_overflow_keeps_the_newest_frames(ros):

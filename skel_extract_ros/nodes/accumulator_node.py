@@ -106,11 +106,17 @@ class AccumulatorNode(Node):
         with self._lock:
             if self.rest_stamp is not None and stamp < self.rest_stamp:
                 return   # a late frame of the previous rest pose
-            if self.frames and stamp <= next(reversed(self.frames)):
-                self.log.warn('order', f'registered frame at {stamp * 1e-9:.3f} s is not newer than the '
-                                       'last one: ignored (a new rest pose restarts the window)')
+            if stamp in self.frames:
+                self.log.warn('duplicate', f'a second registered frame at {stamp * 1e-9:.3f} s: ignored')
                 return
+            if len(self.frames) >= self.window_size and stamp < next(iter(self.frames)):
+                return   # older than the whole (full) window
+            newest = next(reversed(self.frames), None)
             self.frames[stamp] = points
+            if newest is not None and stamp < newest:
+                # a pair completes when its later half arrives, and a fragmented cloud can be
+                # resent seconds late (reliable DDS): the window stays in stamp order, nothing lost
+                self.frames = collections.OrderedDict(sorted(self.frames.items()))
             while len(self.frames) > self.window_size:
                 self.frames.popitem(last=False)
             self._since_extraction += 1
@@ -155,6 +161,7 @@ class AccumulatorNode(Node):
         """(level, state, values) for /diagnostics."""
         with self._lock:
             n_frames, has_rest = len(self.frames), self.rest is not None
+            newest = next(reversed(self.frames), 0)
         running = not self.extractor.idle
         if not has_rest:
             level, state = WARN, 'waiting for rest_points'
@@ -165,6 +172,7 @@ class AccumulatorNode(Node):
         else:
             level, state = OK, f'skeleton of {self.last_bones} bones published'
         return level, state, {'rate_in_hz': self.registered_rate.rate(), 'frames': n_frames,
+                              'newest_stamp_ns': newest,
                               'window_size': self.window_size, 'extracting': running,
                               'extractions': self.extractions, 'published': self.published,
                               'failed': self.extractor.failed}

@@ -21,11 +21,13 @@ After that, live joints (`live_frames`):
   registered frame at or before it), on a latest-frame Worker: the joints never wait for
   registration, and a frame the fit cannot keep up with is skipped and counted. A frame
   whose fit reports the subject lost gets the seed's joints; a frame whose own
-  registered points are already in gets their fit. Registered frames that came while
-  Alg. 2 ran are caught up as below.
+  registered points are already in gets their fit.
 - registered: every registered frame gets the model fitted to its registered points
-  (core.live.LiveJointTracker), as `skel-extract run` does: frames that arrived while
-  Alg. 2 ran are caught up, none is skipped (lossless replay).
+  (core.live.LiveJointTracker), as `skel-extract run` does: none is skipped (lossless
+  replay).
+In both, when a model is ready, the registered frames that have no joints yet and are not
+in its window (between key frames, in none because a pair completed late, or arrived
+while Alg. 2 ran) are tracked and published.
 """
 from __future__ import annotations
 
@@ -242,15 +244,23 @@ class JointEstimationNode(Node):
         for stamp, (header, _, _), positions in zip(stamps, frames, estimate.joint_trajectories()):
             if done is None or stamp > done:
                 self._publish_joints(header, positions, model.parents)
+        in_window = set(stamps)
         with self._lock:
+            # registered frames without joints that are not in the window (between key frames,
+            # left out of it when a pair completed late, or come during Alg. 2) get the model's
+            # tracking now. A previous model has been giving live joints meanwhile: only frames
+            # newer than those are new then (none is published twice).
+            since = done if self.tracker is None else self.last_published
+            catch_up = [(s, v) for s, v in self.registered_only.items()
+                        if (since is None or s > since) and s not in in_window]
             self.tracker, self.articulated, self.model_parents = tracker, articulated, model.parents
             self._seed = None
-            # sliding windows: frames after this window may have live joints from the
-            # previous model already; they are not published twice
-            self.last_published = max(stamps[-1], self.last_published or stamps[-1])
+            published = [stamps[-1]] + [s for s, _ in catch_up[-1:]]
+            self.last_published = max(published + [self.last_published or published[0]])
         self.get_logger().info(f'{model.n_joints} joints from {len(stamps)} frames in '
-                               f'{time.perf_counter() - started:.1f} s; publishing live joints')
-        self._publish_live()
+                               f'{time.perf_counter() - started:.1f} s; publishing live joints'
+                               + (f' ({len(catch_up)} more frames tracked)' if catch_up else ''))
+        self._publish_tracked(tracker, catch_up, model.parents)
 
     # -- live --------------------------------------------------------------------------------
     def _publish_live(self) -> None:
@@ -262,7 +272,11 @@ class JointEstimationNode(Node):
             tracker, parents = self.tracker, self.model_parents
             if todo:
                 self.last_published = todo[-1][0]
-        for _stamp, (header, registered) in todo:
+        self._publish_tracked(tracker, todo, parents)
+
+    def _publish_tracked(self, tracker, frames: list, parents) -> None:
+        """Publish tracker joints for [(stamp, (header, registered (M, 3)))] in order."""
+        for _stamp, (header, registered) in frames:
             started = time.perf_counter()
             positions = tracker.track(registered)
             self.live_ms.append(1000.0 * (time.perf_counter() - started))
