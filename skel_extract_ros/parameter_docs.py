@@ -73,7 +73,11 @@ _REGISTRATION = {
     'segmentation.min_plane_extent': ('m; smaller planes are kept (they may be the subject)', (0.01, 100.0)),
     'segmentation.plane_refresh': ('frames between plane fits', (1, 100_000)),
     'segmentation.attach_distance': ('m; a region this close to the subject in 3-D is part of it', (0.0, 10.0)),
-    'segmentation.min_subject_points': ('a smaller subject is nobody, points', (1, 10_000_000)),
+    'segmentation.min_subject_points': ('a smaller subject is nobody, pixels of the working grid', (1, 10_000_000)),
+    'segmentation.max_pixels': ('the working grid: motion, planes and regions are found on every k-th row '
+                                'and column of larger images (640x480 at 320x240), the subject kept at full '
+                                'resolution; lower it on a slow machine (fewer frames find a small subject)',
+                                (1000, 100_000_000)),
     'segmentation.seed': ('RANSAC seed (repeatable plane fits)', (0, 2**31 - 1)),
     'input': ('what the camera driver publishes: cloud (PointCloud2 on points) or depth_image '
               '(Image on depth/image, 16UC1 mm or 32FC1 m, with CameraInfo on depth/camera_info)', _ANY),

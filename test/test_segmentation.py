@@ -51,6 +51,32 @@ def test_the_moving_subject_is_kept_and_the_room_removed(room):
     assert all(r.n_moving_regions == 1 for r in results[first:])
 
 
+def test_a_vga_camera_is_segmented_on_the_working_grid_and_kept_at_full_resolution():
+    """640x480 (a RealSense, an Xtion): the analysis runs on every 2nd row and column
+    (max_pixels 320x240), the subject's mask comes back at full resolution with the same
+    targets as a 320x240 camera: the cells' pixels that are off the subject's depths (the
+    wall behind an arm) or on the floor are not kept."""
+    vga = generate_sequence('upper_body', 12, scene='room', seed=4, resolution='640x480', progress=False)
+    results = segment_all(vga.clouds)
+    assert all(r.mask.shape == (640 * 480,) for r in results)
+    first = [r.status for r in results].index(STATUS_SUBJECT)
+    assert first <= 3 and all(r.status == STATUS_SUBJECT for r in results[first:])
+    kept, background = scores(results[first:], {k: v[first:] for k, v in vga.ground_truth.items()
+                                                if k in ('subject_measured', 'subject_mask')})
+    assert kept.min() >= 0.98, kept
+    assert background.max() <= 0.01, background
+    # the grid's own answer upsampled, without the depth and plane checks, takes in the
+    # background around the subject: the checks are what keeps it out
+    grid = SubjectSegmenter(SegmentationParams(max_pixels=320 * 240))
+    for cloud in vga.clouds:
+        points, height, width = split_layout(cloud)
+        coarse = grid._organized(points.reshape(height, width, 3)[::2, ::2].astype(np.float64),
+                                 np.isfinite(points).all(axis=1).reshape(height, width)[::2, ::2])
+    blocky = np.repeat(np.repeat(coarse.mask.reshape(240, 320), 2, axis=0), 2, axis=1)
+    assert (blocky & ~vga.ground_truth['subject_mask'][-1]).sum() > 2 * (
+        results[-1].mask.reshape(480, 640) & ~vga.ground_truth['subject_mask'][-1]).sum()
+
+
 def test_same_subject_alone_and_in_the_room(room):
     """The room changes nothing about the subject found (the noise differs pixel by pixel
     between the two renderings, so the scores are compared, not the masks)."""

@@ -20,6 +20,11 @@ frame (organized clouds, the common case of a still depth camera):
    `attach_distance` in 3-D, a still object never moves and never becomes the subject, and a
    second moving region is reported (`n_moving_regions`) but not followed.
 
+Images larger than `max_pixels` (a 640x480 camera) go through these steps on every k-th row
+and column; the subject then comes back at full resolution: the pixels of its cells and of
+the cells beside them that lie within its depths and off the planes. The cost per frame
+follows the working grid, not the camera.
+
 The noise is measured on the sequence itself: the depth deviation sigma(r) = c r^2 (r the
 range, as for structured-light and time-of-flight cameras) with c from the ray residuals of
 the largest plane, else from frame-to-frame differences, never below `min_noise_c`.
@@ -58,7 +63,13 @@ class SegmentationParams:
         the subject's torso or back).
     plane_refresh: frames between plane fits (planes of a still camera do not change).
     attach_distance: m; a moving region this close to the subject in 3-D is part of it.
-    min_subject_points: a subject region smaller than this (points) is nobody.
+    min_subject_points: a subject region smaller than this (pixels of the working grid,
+        points of an unorganized cloud) is nobody.
+    max_pixels: the organized analysis (motion, planes, regions) runs on a working grid of
+        at most this many pixels, every k-th row and column (a 640x480 camera works at
+        320x240 with the default); the subject's pixels at full resolution are then those
+        of its grid cells (and the cells beside it) within a depth jump of it and off the
+        planes. The cost per frame follows the grid, not the camera.
     seed: RANSAC seed.
     """
 
@@ -72,6 +83,7 @@ class SegmentationParams:
     plane_refresh: int = 30
     attach_distance: float = 0.15
     min_subject_points: int = 200
+    max_pixels: int = 320 * 240
     seed: int = 0
 
     def __post_init__(self):
@@ -79,7 +91,7 @@ class SegmentationParams:
                   'motion_lag': self.motion_lag >= 1, 'motion_memory': self.motion_memory >= 1,
                   'max_planes': self.max_planes >= 0, 'min_plane_extent': self.min_plane_extent > 0,
                   'plane_refresh': self.plane_refresh >= 1, 'attach_distance': self.attach_distance >= 0,
-                  'min_subject_points': self.min_subject_points >= 1}
+                  'min_subject_points': self.min_subject_points >= 1, 'max_pixels': self.max_pixels >= 1000}
         bad = [name for name, ok in checks.items() if not ok]
         if bad:
             raise ValueError('segmentation parameter(s) out of range: '
@@ -153,14 +165,60 @@ class SubjectSegmenter:
 
     # ------------------------------------------------------------------------------------
     def __call__(self, points: np.ndarray, height: int = 1, width: int | None = None) -> Segmentation:
-        points = np.asarray(points, dtype=np.float64)
+        points = np.asarray(points)
+        if points.dtype not in (np.float32, np.float64):
+            points = points.astype(np.float64)
         valid = np.isfinite(points).all(axis=1)
         if not self.params.enabled:
             return Segmentation(valid, STATUS_OFF, int(valid.sum()))
         width = len(points) if width is None else int(width)
         if height > 1 and height * width == len(points):
-            return self._organized(points.reshape(height, width, 3), valid.reshape(height, width))
-        return self._unorganized(points, valid)
+            grid, grid_valid = points.reshape(height, width, 3), valid.reshape(height, width)
+            step = int(np.ceil(np.sqrt(height * width / self.params.max_pixels)))
+            if step == 1:
+                return self._organized(grid.astype(np.float64, copy=False), grid_valid)
+            # a large image: the working grid (a copy, in float64), then its subject at full size
+            coarse = self._organized(grid[::step, ::step].astype(np.float64), grid_valid[::step, ::step])
+            return self._full_resolution(coarse, grid, grid_valid, step)
+        return self._unorganized(points.astype(np.float64, copy=False), valid)
+
+    def _full_resolution(self, coarse: Segmentation, points: np.ndarray, valid: np.ndarray,
+                         step: int) -> Segmentation:
+        """The working grid's subject (every `step`-th pixel of `points` (H, W, 3)) at full
+        resolution: a pixel of a subject cell or of a cell beside one is the subject's when
+        its depth lies within the neighbourhood's subject depths (widened by the grid's
+        depth-jump threshold) and it is off every plane. Only the subject's bounding box
+        is visited: the cost follows the subject, not the camera."""
+        n_valid = int(valid.sum())
+        mask = np.zeros(valid.shape, dtype=bool)
+        if coarse.status != STATUS_SUBJECT:
+            return Segmentation(mask.reshape(-1), coarse.status, n_valid, coarse.n_moving_regions,
+                                coarse.touches_border, coarse.noise_c, coarse.n_planes)
+        small = coarse.mask.reshape(self._shape)
+        depth = points[::step, ::step, 2]
+        # the working grid's depth-jump threshold between neighbouring cells (see _organized)
+        jump = np.maximum(self.params.noise_sigmas * 2.0 * coarse.noise_c * depth ** 2,
+                          8.0 * depth / max(self._shape))
+        with np.errstate(invalid='ignore'):
+            near = ndimage.minimum_filter(np.where(small, depth - jump, np.inf), size=3)
+            far = ndimage.maximum_filter(np.where(small, depth + jump, -np.inf), size=3)
+        rows, cols = np.flatnonzero(np.isfinite(near).any(axis=1)), np.flatnonzero(np.isfinite(near).any(axis=0))
+        box = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
+        full_box = (slice(rows[0] * step, min((rows[-1] + 1) * step, valid.shape[0])),
+                    slice(cols[0] * step, min((cols[-1] + 1) * step, valid.shape[1])))
+        shape = (full_box[0].stop - full_box[0].start, full_box[1].stop - full_box[1].start)
+        def upsampled(cells):
+            return np.repeat(np.repeat(cells[box], step, axis=0), step, axis=1)[:shape[0], :shape[1]]
+        box_points = points[full_box].astype(np.float64)
+        z = box_points[..., 2]
+        with np.errstate(invalid='ignore'):
+            inside = valid[full_box] & (z >= upsampled(near)) & (z <= upsampled(far))
+        candidates = box_points[inside]
+        on_plane = self._on_planes(candidates, coarse.noise_c * candidates[:, 2] ** 2)
+        inside[inside] = ~on_plane
+        mask[full_box] = inside
+        return Segmentation(mask.reshape(-1), STATUS_SUBJECT, n_valid, coarse.n_moving_regions,
+                            coarse.touches_border, coarse.noise_c, coarse.n_planes)
 
     # -- noise ---------------------------------------------------------------------------
     def _update_noise(self, estimate: float | None) -> float:
