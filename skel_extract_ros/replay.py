@@ -364,7 +364,7 @@ def replay(input_path, out, rate: float = 1.0, topic: str | None = None, params_
         shutil.rmtree(recording, ignore_errors=True)
 
     summary = _write_files(received, out)
-    summary.update(_latencies(received))
+    summary.update(_latencies(received, realtime))
     if realtime:
         summary['realtime'] = _camera_delivery(received, streamed)
     summary['streamed_s'] = streamed
@@ -423,14 +423,16 @@ def _camera_delivery(received: Received, streamed_s: float) -> dict:
             'latency_ms_p95': float(np.percentile(live, 95)) if live else float('nan')}
 
 
-def _latencies(received: Received) -> dict:
+def _latencies(received: Received, realtime: bool) -> dict:
     """Per-node latency (ms): registration = cloud published -> registered_points received;
-    joints (live frames only) = registered_points received -> skeleton/joints received."""
+    lossless only, joints (live frames) = registered_points received -> skeleton/joints
+    received. Realtime joints answer the camera frame, not its registration (often before
+    it): their latency is the camera delivery's (_camera_delivery)."""
     registration = [1000 * (received.registered_at[s] - received.published_at[s])
                     for s in received.registered_at if s in received.published_at]
     window = set(received.structure['window_stamps_ns']) if received.structure else set()
-    live = [1000 * (received.joints_at[s] - received.registered_at[s])
-            for s in received.joints_at if s in received.registered_at and s not in window]
+    live = [] if realtime else [1000 * (received.joints_at[s] - received.registered_at[s])
+                                for s in received.joints_at if s in received.registered_at and s not in window]
     result = {}
     for name, values in (('registration_ms', registration), ('live_joints_ms', live)):
         if values:

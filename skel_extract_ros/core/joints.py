@@ -213,11 +213,10 @@ class JointEstimation:
                         break
                 previous = (data, joint_term, alpha)
                 a = P1 / tau[:, None]                                                    # (F, M)
-                positions = self.bone_positions(rest, rotations, translations)
                 influences, weights = self._update_weights(rest, rotations, translations, registered, targets,
-                                                              a, positions, k)
+                                                              a, k)
                 self.update_bones(rest, registered, targets, a, rotations, translations, influences, weights,
-                                   joints, edges, alpha, positions)
+                                   joints, edges, alpha)
                 joints = solve_joints(rotations, translations, parents, anchors, p.eta)
                 deformed = self._deform(rest, rotations, translations, influences, weights)
                 tau = np.array([max(s.squared_residual(x) / (3.0 * max(s.Np, 1e-12)), p.min_tau) if s else t
@@ -229,22 +228,22 @@ class JointEstimation:
 
     # ------------------------------------------------------------------------------------
     @staticmethod
-    def bone_positions(rest, rotations, translations) -> np.ndarray:
-        """(F, B, M, 3) every rest point moved by every bone: R_j^t q_m + T_j^t."""
-        F, B = rotations.shape[:2]
-        # one GEMM (M x 3) @ (3 x F*B*3) instead of F*B tiny matrix products
-        moved = rest @ rotations.transpose(3, 0, 1, 2).reshape(3, -1)
-        return moved.reshape(len(rest), F, B, 3).transpose(1, 2, 0, 3) + translations[:, :, None, :]
-
-    @staticmethod
-    def _gather(positions, influences) -> np.ndarray:
-        """(F, M, k, 3) the positions of each point under its k influencing bones."""
-        return positions[:, influences, np.arange(influences.shape[0])[:, None]]
+    def influenced_positions(rest, rotations, translations, influences) -> np.ndarray:
+        """(F, M, k, 3) each rest point moved by each of its k influencing bones: R_j^t q_m +
+        T_j^t. Only those k: every point under every bone is (F, B, M, 3), 55 MB for a
+        60-frame window of a 19-bone body, and was the joint node's peak memory."""
+        F, M, k = len(rotations), len(rest), influences.shape[1]
+        positions = np.empty((F, M, k, 3))
+        for slot in range(k):   # k <= max_influences (4): a few (F, M, 3, 3) products
+            bones = influences[:, slot]
+            positions[:, :, slot] = (np.einsum('fmij,mj->fmi', rotations[:, bones], rest)
+                                     + translations[:, bones])
+        return positions
 
     @classmethod
     def _deform(cls, rest, rotations, translations, influences, weights) -> np.ndarray:
         """Eq. (8): (F, M, 3) LBS positions."""
-        positions = cls._gather(cls.bone_positions(rest, rotations, translations), influences)
+        positions = cls.influenced_positions(rest, rotations, translations, influences)
         return np.einsum('mk,fmki->fmi', weights, positions)
 
     @staticmethod
@@ -276,16 +275,16 @@ class JointEstimation:
                 + c.T @ np.sum(translations ** 2, axis=2)
                 + 2.0 * np.einsum('mbj,mj->mb', (c.T @ carried).reshape(M, B, 3), rest))
 
-    def _update_weights(self, rest, rotations, translations, registered, targets, a, positions, k):
+    def _update_weights(self, rest, rotations, translations, registered, targets, a, k):
         """Per point: the k bones with the smallest single-bone objective, then the exact
-        simplex-constrained least squares on them. positions: (F, B, M, 3) bone positions."""
+        simplex-constrained least squares on them."""
         zeta = self.params.zeta
         F, M, _ = registered.shape
         c = a + zeta                                                                  # (F, M)
         z = (a[..., None] * targets + zeta * registered) / c[..., None]               # (F, M, 3)
         single = self.single_bone_costs(rest, rotations, translations, c, z)
         influences = np.argsort(single, axis=1)[:, :k]
-        chosen = self._gather(positions, influences)                                  # (F, M, k, 3)
+        chosen = self.influenced_positions(rest, rotations, translations, influences)  # (F, M, k, 3)
         per_point = chosen.transpose(1, 2, 0, 3).reshape(M, k, F * 3)                 # (M, k, 3F)
         weighted = (chosen * c[:, :, None, None]).transpose(1, 2, 0, 3).reshape(M, k, F * 3)
         G = weighted @ per_point.transpose(0, 2, 1)
@@ -293,9 +292,8 @@ class JointEstimation:
         return influences, simplex_least_squares(G, h)
 
     def update_bones(self, rest, registered, targets, a, rotations, translations, influences, weights,
-                      joints, edges, alpha, positions) -> None:
-        """Eq. (13)-(15), bone after bone, every frame at once (in place); positions:
-        (F, B, M, 3) bone positions for the current transforms."""
+                      joints, edges, alpha) -> None:
+        """Eq. (13)-(15), bone after bone, every frame at once (in place)."""
         p = self.params
         F, M, _ = registered.shape
         B = rotations.shape[1]
@@ -303,7 +301,8 @@ class JointEstimation:
         for child, parent in edges:
             neighbours[child].append((parent, child))   # joint stored on the child bone
             neighbours[parent].append((child, child))
-        contributions = weights[None, :, :, None] * self._gather(positions, influences)
+        contributions = weights[None, :, :, None] * self.influenced_positions(rest, rotations, translations,
+                                                                              influences)
         deformed = contributions.sum(axis=2)                                          # (F, M, 3)
         for bone in range(B):  # loop over bones (a few dozen), vectorised over frames and points
             # each point lists a bone at most once, so m has no repeats
