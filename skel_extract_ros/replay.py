@@ -156,7 +156,7 @@ class _Recorder:
         from .pointcloud import decode_xyz
         now = time.perf_counter()
         self.writer.write(self.connections[topic], time.time_ns(), raw)
-        # recorded only: markers and diagnostics are not needed for the files
+        # markers are recorded only: the files do not need them
         msg = None if topic == 'skeleton/markers' else self._deserialize(raw, _ros_type(type_name))
         r = self.received
         with self.condition:

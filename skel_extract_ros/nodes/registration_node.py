@@ -223,10 +223,14 @@ class RegistrationNode(Node):
     def _failed(self, item, error) -> None:
         """A cloud whose processing raised: one throttled line, the node goes on."""
         self._finished()
+        if not self.context.ok():
+            return   # Ctrl-C closed the context under a cloud in progress: its publish failed
         self.log.warn('failed', f'cloud at {stamp_ns(item[0].header) * 1e-9:.3f} s failed: '
                                 f'{type(error).__name__}: {error}')
 
     def _registration_failed(self, item, error) -> None:
+        if not self.context.ok():
+            return
         self.log.warn('failed', f'registration of the cloud at {stamp_ns(item.header) * 1e-9:.3f} s failed: '
                                 f'{type(error).__name__}: {error}')
 
