@@ -61,6 +61,7 @@ def main() -> int:
     import rclpy
     from geometry_msgs.msg import PoseArray
     from rclpy.executors import SingleThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
     from sensor_msgs.msg import PointCloud2
 
     from skel_extract_ros.bag import _raw_messages, select_cloud_topic
@@ -78,7 +79,8 @@ def main() -> int:
     pass_ns = stamps[-1] - stamps[0] + period_ns
 
     context = rclpy.Context()
-    rclpy.init(context=context)
+    # Ctrl-C ends the soak through the finally below (the nodes stopped as a user would)
+    rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
     processes = _start_nodes(Path(args.params) if args.params else None, None, work / 'logs', lossless=False)
     node = rclpy.create_node('skel_extract_soak', context=context)
     counts = {t: 0 for t in OUTPUTS}

@@ -31,7 +31,7 @@ from ..core.growth import SkeletonGrowth
 from ..core.structure import StructureError, StructureParams
 from ..params import structure_params_from_dict
 from .common import (LATCHED_QOS, STREAM_QOS, StampPairer, ThrottledLog, declare_node_parameters,
-                     decode_or_warn, decode_registered_or_warn, run_node)
+                     decode_or_warn, decode_registered_or_warn, release_freed_memory, run_node)
 from .conversions import stamp_ns, structure_document
 from .diagnostics import OK, WARN, NodeDiagnostics
 from .worker import RateMeter, Worker
@@ -192,6 +192,7 @@ class AccumulatorNode(Node):
             return
         structure = update.structure
         self.extractions += 1
+        release_freed_memory()
         seconds = time.perf_counter() - started
         if not update.changed:
             self.get_logger().info(f'skeletal structure ({reason}): unchanged, {structure.n_bones} bones '

@@ -151,6 +151,19 @@ def decode_registered_or_warn(msg, log: ThrottledLog, rest):
     return points
 
 
+def release_freed_memory() -> None:
+    """Hand the heap freed by a large job (Alg. 2, a structure extraction, a Poisson rest
+    pose) back to the system. glibc keeps freed memory in its per-thread arenas, so a node
+    keeps its peak for good (measured: 80 MB after Alg. 2 on a 40-frame window, released
+    by malloc_trim); no-op where libc has no malloc_trim (musl, macOS)."""
+    import ctypes
+    import ctypes.util
+    try:
+        ctypes.CDLL(ctypes.util.find_library('c') or 'libc.so.6').malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
+
+
 def run_node(node_factory, args=None) -> int:
     """The demo_nodes_py main: spin until Ctrl-C or shutdown, no traceback. Parameter
     errors end the node with one line and exit code 2."""

@@ -50,7 +50,8 @@ from ..core.skeleton_model import SkeletonModel
 from ..core.structure import SkeletalStructure
 from ..params import joint_params_from_dict
 from .common import (LATCHED_QOS, STREAM_QOS, ParameterError, StampPairer, ThrottledLog,
-                     declare_node_parameters, decode_or_warn, decode_registered_or_warn, run_node)
+                     declare_node_parameters, decode_or_warn, decode_registered_or_warn, release_freed_memory,
+                     run_node)
 from .conversions import description_document, parse_structure, pose_array, skeleton_markers, stamp_ns
 from .diagnostics import OK, WARN, NodeDiagnostics
 from .worker import RateMeter, Worker
@@ -261,6 +262,7 @@ class JointEstimationNode(Node):
                                f'{time.perf_counter() - started:.1f} s; publishing live joints'
                                + (f' ({len(catch_up)} more frames tracked)' if catch_up else ''))
         self._publish_tracked(tracker, catch_up, model.parents)
+        release_freed_memory()
 
     # -- live --------------------------------------------------------------------------------
     def _publish_live(self) -> None:

@@ -44,7 +44,7 @@ from ..depth_image import DepthDecodeError, depth_to_cloud
 from ..params import NODE_ONLY, registration_params_from_dict
 from ..pointcloud import CloudDecodeError, decode_xyz
 from .common import (LATCHED_QOS, SENSOR_QOS, STREAM_QOS, ParameterError, ThrottledLog, declare,
-                     declare_dataclass, run_node)
+                     declare_dataclass, release_freed_memory, run_node)
 from .conversions import cloud_message, stamp_ns
 from .diagnostics import OK, WARN, NodeDiagnostics
 from .worker import Worker
@@ -328,6 +328,7 @@ class RegistrationNode(Node):
                 self.log.warn('no_rest', f'no rest pose from this cloud: {error}')
                 return
             self.registration = NonRigidRegistration(self.rest_pose.points, self.params)
+            release_freed_memory()
             self.rest_pub.publish(cloud_message(self.rest_pose.points, frame.header, float64=True))
             self.get_logger().info(f'rest pose built from the cloud at {stamp * 1e-9:.3f} s '
                                    f'({len(self.rest_pose.points)} points, frame {frame.header.frame_id!r})')
