@@ -248,7 +248,7 @@ class JointEstimationNode(Node):
         in_window = set(stamps)
         with self._lock:
             # registered frames without joints that are not in the window (between key frames,
-            # left out of it when a pair completed late, or come during Alg. 2) get the model's
+            # left out of it when a pair completed late, or arrived during Alg. 2) get the model's
             # tracking now. A previous model has been giving live joints meanwhile: only frames
             # newer than those are new then (none is published twice).
             since = done if self.tracker is None else self.last_published
