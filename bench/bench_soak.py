@@ -61,13 +61,13 @@ def main() -> int:
     import rclpy
     from geometry_msgs.msg import PoseArray
     from rclpy.executors import SingleThreadedExecutor
+    from rclpy.serialization import deserialize_message
     from rclpy.signals import SignalHandlerOptions
     from sensor_msgs.msg import PointCloud2
 
     from skel_extract_ros.bag import _raw_messages, select_cloud_topic
     from skel_extract_ros.nodes.common import SENSOR_QOS, STREAM_QOS
     from skel_extract_ros.nodes.conversions import stamp_ns
-    from rclpy.serialization import deserialize_message
 
     work = Path(args.work) if args.work else Path(tempfile.mkdtemp(prefix='bench_soak_'))
     work.mkdir(parents=True, exist_ok=True)
