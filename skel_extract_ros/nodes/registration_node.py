@@ -55,14 +55,13 @@ SECTION = 'registration_node'
 @dataclass
 class _SubjectFrame:
     """What the camera stage hands to the registration stage: the epoch of the rest pose it
-    belongs to, the cloud's header, the preprocessed subject (N, 3) m, the segmentation
-    result (for the rest pose's wait for a whole subject) and the valid points of the cloud."""
+    belongs to, the cloud's header, the preprocessed subject (N, 3) m and the segmentation
+    result (for the rest pose's wait for a whole subject; it counts the cloud's valid points)."""
 
     epoch: int
     header: object
     observed: np.ndarray
     segmentation: object
-    n_valid: int
 
 
 class RegistrationNode(Node):
@@ -292,8 +291,7 @@ class RegistrationNode(Node):
                                 throttle_duration_sec=1.0)
         observed = self.preprocessor(raw[segmentation.mask])
         self.filtered_pub.publish(cloud_message(observed, msg.header))
-        frame = _SubjectFrame(self.epoch, msg.header, observed, segmentation,
-                              int(np.isfinite(raw).all(axis=1).sum()))
+        frame = _SubjectFrame(self.epoch, msg.header, observed, segmentation)
         if self.registrar.submit(frame, block=self.lossless):
             self._warn_skipped()
         return True
@@ -320,7 +318,7 @@ class RegistrationNode(Node):
                 return
             if len(observed) < max(100, self.rest_params.n_points // 10):
                 self.log.warn('no_rest', f'no rest pose yet: only {len(observed)} points after preprocessing '
-                                         f'(of {frame.n_valid} valid); is the subject in view?')
+                                         f'(of {segmentation.n_valid} valid); is the subject in view?')
                 return
             try:
                 self.rest_pose = RestPose.from_points(observed, self.rest_params)
