@@ -7,8 +7,9 @@ A bag's clouds (default: the built-in human in a room, 300 frames, simulated int
 are published over and over at the bag's pace times --rate, best effort as a driver does,
 their stamps moving on by the bag's length each pass so time never goes back (each pass
 starts with a jump from the last pose to the first). Every --sample-s seconds one line:
-the resident memory (VmRSS, MB) of each node and their sum, and over the interval the
-rates of filtered_points, registered_points and skeleton/joints received (Hz). At the end,
+the resident memory (VmRSS, MB) of each node with its child processes and their sum, and
+over the interval the rates of filtered_points, registered_points and skeleton/joints
+received (Hz). At the end,
 each node's memory growth from its first sample after the skeleton exists to its last.
 """
 from __future__ import annotations
@@ -30,13 +31,18 @@ OUTPUTS = ('filtered_points', 'registered_points', 'skeleton/joints')
 
 
 def rss_mb(pid: int) -> float:
+    """Resident memory of a node with its child processes (the registration node runs
+    Alg. 1 in one, and multiprocessing adds its resource tracker), MB."""
+    total = 0.0
     try:
         for line in Path(f'/proc/{pid}/status').read_text().splitlines():
             if line.startswith('VmRSS:'):
-                return int(line.split()[1]) / 1024.0
+                total += int(line.split()[1]) / 1024.0
+        children = [int(c) for task in Path(f'/proc/{pid}/task').iterdir()
+                    for c in (task / 'children').read_text().split()]
     except OSError:
-        pass
-    return float('nan')
+        return total if total else float('nan')
+    return total + sum(rss_mb(child) for child in children)
 
 
 def default_bag(work: Path) -> Path:

@@ -264,7 +264,8 @@ def _cmd_replay(args) -> int:
     out = Path(args.out)
     try:
         summary = replay(args.input, out, rate=args.rate, topic=args.topic, params_file=args.params,
-                         namespace=args.namespace, progress=on_published, realtime=args.realtime)
+                         namespace=args.namespace, progress=on_published, realtime=args.realtime,
+                         loops=args.loop)
     except (BagError, ParamsError, ReplayError) as error:
         raise UserError(str(error)) from None
     finally:
@@ -281,6 +282,11 @@ def _cmd_replay(args) -> int:
               f'({camera["joints_hz"]:.1f} Hz), {camera["without_joints"]} without; latency cloud -> joints '
               f'median {camera["latency_ms_median"]:.0f} ms, p95 {camera["latency_ms_p95"]:.0f} ms '
               f'({camera["live_frames"]} live frames)')
+        tracking = camera['tracking']
+        if tracking is not None:
+            print(f'once tracking ({tracking["seconds"]:.1f} s): {tracking["with_joints"]} of '
+                  f'{tracking["published"]} camera frames got joints ({tracking["joints_hz"]:.1f} Hz of '
+                  f'{tracking["camera_hz"]:.1f} Hz), {tracking["filtered"]} passed the segmentation')
     for name in ('registration_ms', 'live_joints_ms'):
         if name in summary:
             values = summary[name]
@@ -393,6 +399,9 @@ def build_parser() -> argparse.ArgumentParser:
     replay_cmd.add_argument('--realtime', action='store_true',
                             help='publish like a camera: at the bag\'s pace (x --rate), best effort, never waiting '
                                  'for the nodes; report the joints rate, latency and frames without joints')
+    replay_cmd.add_argument('--loop', type=int, default=1, metavar='N',
+                            help='with --realtime: play the bag N times, the stamps moving on each pass '
+                                 '(a long live run from a short bag)')
     replay_cmd.add_argument('--topic', default=None, help='PointCloud2 topic in the bag (default: the only one)')
     replay_cmd.add_argument('--params', default=None, help='ROS 2 parameter YAML for the nodes')
     replay_cmd.add_argument('--namespace', default=None, help='run the nodes and topics in this namespace')

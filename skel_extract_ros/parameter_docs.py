@@ -86,6 +86,11 @@ _REGISTRATION = {
     'queue_size': ('subject clouds waiting for the registration at most; older ones are skipped (and '
                    'counted) when registration falls behind the camera (filtered_points still comes for '
                    'every cloud)', (1, 100_000)),
+    'registration_niceness': ('added to the nice value of the child process that runs Alg. 1 once the '
+                              'joint node tracks a skeleton: when the cores are short, learning waits and the '
+                              'live path (segmentation, filtered_points, the joint fit) keeps the camera rate; '
+                              'while learning the first skeleton it runs at the node\'s priority; 0 = never '
+                              'lowered', (0, 19)),
     'lossless': ('never skip a cloud: when registration falls behind, segmentation waits for it and '
                  'so does the input (bag replay with input_reliability reliable; replay sets it)', _ANY),
 }

@@ -198,14 +198,16 @@ class _Recorder:
 
 def replay(input_path, out, rate: float = 1.0, topic: str | None = None, params_file=None,
            namespace: str | None = None, frame_timeout: float = 20.0, progress=None,
-           realtime: bool = False) -> dict:
+           realtime: bool = False, loops: int = 1) -> dict:
     """Run the node graph on a bag; writes DIR/output.mcap, skeleton.json, skeleton.bvh,
     registered.npz, skeleton.png and DIR/logs/<node>.log. Returns a summary dict (counts,
-    latencies; with `realtime`, 'realtime': the camera-like delivery). Raises ReplayError /
-    BagError on failure."""
+    latencies; with `realtime`, 'realtime': the camera-like delivery). `loops` (realtime
+    only): play the bag that many times, the stamps of each pass moved on by the bag's
+    length so time never goes back (each pass starts with a jump to the first pose).
+    Raises ReplayError / BagError on failure."""
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
-    from rclpy.serialization import deserialize_message
+    from rclpy.serialization import deserialize_message, serialize_message
     from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
     from std_srvs.srv import Trigger
 
@@ -219,6 +221,9 @@ def replay(input_path, out, rate: float = 1.0, topic: str | None = None, params_
         raise ReplayError(f'--rate must be >= 0 (0 = as fast as possible), got {rate}')
     if realtime and rate == 0:
         raise ReplayError('--realtime needs a --rate above 0 (1 = the bag\'s own pace)')
+    if loops < 1 or (loops > 1 and not realtime):
+        raise ReplayError(f'--loop must be >= 1 and needs --realtime (a lossless replay learns one window), '
+                          f'got {loops}')
     topic = select_cloud_topic(input_path, topic)
     n_frames = cloud_topics(input_path)[topic]
     if n_frames < 2:
@@ -279,9 +284,21 @@ def replay(input_path, out, rate: float = 1.0, topic: str | None = None, params_
             raise ReplayError('the nodes did not come up within 120 s (see DIR/logs)')
 
         started = time.perf_counter()
-        first_stamp, previous = None, None
-        for index, (_time, raw) in enumerate(_raw_messages(input_path, topic)):
-            stamp = stamp_ns(deserialize_message(bytes(raw), cloud_type).header)
+        first_stamp, previous, shift_ns = None, None, 0
+
+        def restamped(raw, msg_type):
+            """(stamp ns, raw CDR) of a message with its stamp moved on by shift_ns."""
+            msg = deserialize_message(bytes(raw), msg_type)
+            stamp = stamp_ns(msg.header) + shift_ns
+            if shift_ns:
+                msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp, 10**9)
+                raw = serialize_message(msg)
+            return stamp, bytes(raw)
+        bag_messages = (message for _pass in range(loops) for message in _raw_messages(input_path, topic))
+        for index, (_time, raw) in enumerate(bag_messages):
+            if index and index % n_frames == 0:   # the next pass: one period after the last cloud
+                shift_ns = (index // n_frames) * (previous - shift_ns - first_stamp) * n_frames // (n_frames - 1)
+            stamp, raw = restamped(raw, cloud_type)
             first_stamp = stamp if first_stamp is None else first_stamp
             if not realtime and previous is not None and not recorder.wait_for(
                     lambda s=previous: s in received.filtered_at, frame_timeout, alive):
@@ -292,12 +309,12 @@ def replay(input_path, out, rate: float = 1.0, topic: str | None = None, params_
                 time.sleep(max(0.0, due - time.perf_counter()))
             received.published_at[stamp] = time.perf_counter()
             if depth_image:   # the camera info at or before the image goes first
-                recorder.info_publisher.publish(
-                    infos[max(int(np.searchsorted(info_stamps, stamp, side='right')) - 1, 0)][1])
-            recorder.publisher.publish(bytes(raw))
+                info = infos[max(int(np.searchsorted(info_stamps, stamp - shift_ns, side='right')) - 1, 0)]
+                recorder.info_publisher.publish(restamped(info[1], info_type)[1])
+            recorder.publisher.publish(raw)
             previous = stamp
             if progress:
-                progress(index + 1, n_frames)
+                progress(index + 1, n_frames * loops)
         if realtime:
             # frames may have been skipped, the last one too: wait until the nodes go quiet
             streamed_until = time.perf_counter()
@@ -368,7 +385,7 @@ def replay(input_path, out, rate: float = 1.0, topic: str | None = None, params_
     if realtime:
         summary['realtime'] = _camera_delivery(received, streamed)
     summary['streamed_s'] = streamed
-    summary['clouds_per_s'] = n_frames / streamed
+    summary['clouds_per_s'] = n_frames * loops / streamed
     summary['exit_codes'] = exit_codes
     summary['counts'] = dict(received.counts)
     return summary
@@ -414,13 +431,28 @@ def _camera_delivery(received: Received, streamed_s: float) -> dict:
     published = received.published_at
     with_joints = [s for s in published if s in received.joints_at]
     window = set(received.structure['window_stamps_ns']) if received.structure else set()
-    live = [1000 * (received.joints_at[s] - published[s]) for s in with_joints if s not in window]
+    live = [s for s in with_joints if s not in window]
+    latency = [1000 * (received.joints_at[s] - published[s]) for s in live]
     return {'published': len(published), 'with_joints': len(with_joints),
             'without_joints': len(published) - len(with_joints),
             'joints_hz': len(with_joints) / streamed_s if streamed_s > 0 else float('nan'),
             'live_frames': len(live),
-            'latency_ms_median': float(np.median(live)) if live else float('nan'),
-            'latency_ms_p95': float(np.percentile(live, 95)) if live else float('nan')}
+            'latency_ms_median': float(np.median(latency)) if latency else float('nan'),
+            'latency_ms_p95': float(np.percentile(latency, 95)) if latency else float('nan'),
+            'tracking': _tracking_delivery(received, min(live)) if live else None}
+
+
+def _tracking_delivery(received: Received, first_live: int) -> dict:
+    """From the first camera frame with live joints (stamp ns) to the last one published:
+    frames published, passed on by the camera stage (filtered_points), with joints, and
+    the joints rate over that time (Hz), the rate a user gets once the skeleton is tracked."""
+    published = {s: t for s, t in received.published_at.items() if s >= first_live}
+    span_s = max(published.values()) - published[first_live]
+    with_joints = sum(s in received.joints_at for s in published)
+    return {'published': len(published), 'filtered': sum(s in received.filtered_at for s in published),
+            'with_joints': with_joints, 'seconds': span_s,
+            'camera_hz': (len(published) - 1) / span_s if span_s > 0 else float('nan'),
+            'joints_hz': with_joints / span_s if span_s > 0 else float('nan')}
 
 
 def _latencies(received: Received, realtime: bool) -> dict:

@@ -1,5 +1,7 @@
 """The three nodes alone, on real DDS (in process, private domain, localhost discovery)."""
 import json
+import os
+import signal
 
 import numpy as np
 import pytest
@@ -175,6 +177,31 @@ def test_registration_reset_service_builds_a_new_rest_pose(ros, arm):
     pub.publish(cloud(arm.clouds[3], arm.stamps_ns[3]))
     ros.wait(lambda: len(rests) == 2, what='the rest pose rebuilt after ~/reset')
     assert stamps_of(rests)[-1] == arm.stamps_ns[3]
+
+
+def test_registration_runs_nicer_once_a_skeleton_is_tracked_and_survives_its_process_dying(ros, arm):
+    node = small_registration(ros, registration_niceness=7)
+    rests = ros.listen('rest_points', PointCloud2, LATCHED_QOS)
+    registered = ros.listen('registered_points', PointCloud2, STREAM_QOS)
+    pub = ros.publisher('points', PointCloud2, qos_profile_sensor_data)
+    ros.wait_matched(pub)
+    base = os.getpriority(os.PRIO_PROCESS, 0)
+    pub.publish(cloud(arm.clouds[0], arm.stamps_ns[0]))
+    ros.wait(lambda: len(registered) == 1, what='the first frame')
+    assert node.registration_process.nice == base           # learning: full priority
+    # what the joint node latches once it has a model
+    ros.publisher('skeleton/description', String, LATCHED_QOS).publish(String(data='{}'))
+    ros.wait(lambda: node.registration_process.nice == min(base + 7, 19), what='the lowered priority')
+    # the child dies (out of memory, killed): said, a new child, a new rest pose
+    os.kill(node.registration_process.pid, signal.SIGKILL)
+    pub.publish(cloud(arm.clouds[1], arm.stamps_ns[1]))
+    ros.wait(lambda: any('registration process ended' in m for m in ros.warnings('registration_node')),
+             what='the line about the dead child')
+    pub.publish(cloud(arm.clouds[2], arm.stamps_ns[2]))
+    ros.wait(lambda: len(rests) == 2 and len(registered) == 2, what='a new rest pose and frame')
+    assert stamps_of(rests)[-1] == stamps_of(registered)[-1] == arm.stamps_ns[2]
+    assert node.registration_process.nice == base            # learning the new one first
+    assert ros.spinning()
 
 
 def test_registration_node_counts_skipped_clouds(ros, arm):

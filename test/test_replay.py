@@ -1,5 +1,7 @@
-"""`skel-extract replay`: the three node processes over real DDS on the sample bag."""
+"""`skel-extract replay`: the three node processes over real DDS, on the sample bag and
+driven like a camera at 30 Hz."""
 import json
+import re
 
 import numpy as np
 
@@ -56,6 +58,37 @@ def test_replay_sample_bag_records_every_topic_and_matches_run(tmp_path, sample_
                           axis=2).max() < 8e-3
 
 
-def test_replay_bad_input_is_one_line(tmp_path):
+def test_live_at_camera_rate_on_a_room_bag(tmp_path):
+    """The installed nodes on defaults, a 30 Hz best-effort camera (a 3 s room bag played
+    ten times over, the stamps moving on), a short learning window so that most of the 30 s
+    is tracking: joints come, for the frames the segmentation passes on, at a rate a
+    person-following robot can use."""
+    bag = tmp_path / 'arm_room'
+    run_cli('simulate', '--subject', 'arm', '--frames', '90', '--scene', 'room', '--out', bag)
+    params = tmp_path / 'window.yaml'
+    params.write_text('accumulator_node:\n  ros__parameters:\n    window_size: 10\n')
+    done = run_cli_private_domain(51, 'replay', bag, '--out', tmp_path / 'out', '--realtime', '--loop', '10',
+                                  '--params', params)
+    assert done.returncode == 0, done.stderr[-2000:]
+    tracking = re.search(r'once tracking \(([\d.]+) s\): (\d+) of (\d+) camera frames got joints '
+                         r'\(([\d.]+) Hz of ([\d.]+) Hz\), (\d+) passed the segmentation', done.stdout)
+    assert tracking, done.stdout
+    seconds, with_joints, published, joints_hz, camera_hz, filtered = map(float, tracking.groups())
+    assert seconds > 10.0 and abs(camera_hz - 30.0) < 1.5        # tracked for most of the run, at 30 Hz
+    # the live fit keeps up with the camera stage: joints for nearly every frame it passes on
+    # (this machine: 87 %), and they come at more than a third of the camera rate (17.5 Hz
+    # here; before registration left the node's process: 15 Hz, the issue's 5.6 Hz before
+    # the live fit)
+    assert with_joints >= 0.75 * filtered, done.stdout
+    assert joints_hz >= 10.0, done.stdout
+    registration_log = (tmp_path / 'out' / 'logs' / 'registration_node.log').read_text()
+    assert 'the skeleton is tracked: registration runs at nice' in registration_log
+    for name in ('registration_node', 'accumulator_node', 'joint_estimation_node'):
+        assert 'Traceback' not in (tmp_path / 'out' / 'logs' / f'{name}.log').read_text()
+
+
+def test_replay_bad_input_is_one_line(tmp_path, sample_bag):
     done = run_cli('replay', tmp_path / 'missing', '--out', tmp_path / 'o')
     assert done.returncode == 2 and done.stderr.count('\n') == 1 and 'does not exist' in done.stderr
+    done = run_cli('replay', sample_bag, '--out', tmp_path / 'o', '--loop', '3')
+    assert done.returncode == 2 and done.stderr.count('\n') == 1 and 'needs --realtime' in done.stderr

@@ -9,6 +9,8 @@ Subscribes  points            sensor_msgs/PointCloud2  sensor-data QoS (best eff
 Publishes   registered_points PointCloud2 (M points, fixed order, input header; ok frames only)
             filtered_points   PointCloud2 (the subject, preprocessed, input header; every decodable cloud)
             rest_points       PointCloud2 (float64, transient local; the rest pose Q, header of its cloud)
+Subscribes  skeleton/description std_msgs/String (transient local): the joint node tracks a
+                              skeleton; from then on Alg. 1 runs at registration_niceness
 Services    ~/reset           std_srvs/Trigger: forget the rest pose, build a new one
             ~/reset_background std_srvs/Trigger: forget the learned scene (planes, motion
                               evidence, the subject) after the camera moved
@@ -23,7 +25,11 @@ at camera rate whatever registration costs:
   most `queue_size` waiting ones: when it falls behind, the oldest waiting cloud is skipped,
   counted and reported, so it always works on recent frames. With `lossless` nothing is
   skipped: the camera stage waits for room (back-pressure; for bag replay with reliable
-  input). The rest pose waits until the subject is wholly in view.
+  input). The rest pose waits until the subject is wholly in view. Alg. 1 itself runs in a
+  child process (nodes/registration_process.py): it never takes the GIL from the camera
+  stage, and once the joint node tracks a skeleton (skeleton/description) it runs
+  `registration_niceness` nicer, so when the cores are short learning waits, not the live
+  path. A new rest pose (reset, stamps going back) starts a new child at full priority.
 """
 from __future__ import annotations
 
@@ -33,6 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from ..core.preprocess import PreprocessParams, Preprocessor
@@ -47,6 +54,7 @@ from .common import (LATCHED_QOS, SENSOR_QOS, STREAM_QOS, ParameterError, Thrott
                      declare_dataclass, release_freed_memory, run_node)
 from .conversions import cloud_message, stamp_ns
 from .diagnostics import OK, WARN, NodeDiagnostics
+from .registration_process import BrokenProcessPool, RegistrationProcess
 from .worker import Worker
 
 SECTION = 'registration_node'
@@ -78,6 +86,7 @@ class RegistrationNode(Node):
             raise ParameterError(f"parameter input_reliability must be 'best_effort' or 'reliable', "
                                  f'got {reliability!r}')
         self.input = declare(self, SECTION, 'input', NODE_ONLY[SECTION]['input'])
+        niceness = declare(self, SECTION, 'registration_niceness', NODE_ONLY[SECTION]['registration_niceness'])
         if self.input not in ('cloud', 'depth_image'):
             raise ParameterError(f"parameter input must be 'cloud' or 'depth_image', got {self.input!r}")
         try:
@@ -90,6 +99,7 @@ class RegistrationNode(Node):
         self.filtered_pub = self.create_publisher(PointCloud2, 'filtered_points', STREAM_QOS)
         self.rest_pub = self.create_publisher(PointCloud2, 'rest_points', LATCHED_QOS)
         self.create_service(Trigger, '~/reset', self._on_reset)
+        self.create_subscription(String, 'skeleton/description', self._on_skeleton, LATCHED_QOS)
         self.create_service(Trigger, '~/reset_background', self._on_reset_background)
         # set by the services, acted on by the camera stage before its next cloud
         self._background_reset_requested = False
@@ -98,6 +108,7 @@ class RegistrationNode(Node):
         # stage starts over when a cloud of a newer epoch reaches it (skips cannot lose it)
         self.epoch, self._registration_epoch = 0, 0
         self._start_camera()
+        self.registration_process = RegistrationProcess(niceness)
         self._start_registration()
         self._done = 0                 # clouds finished by either stage (tests, diagnostics)
         self._count_lock = threading.Lock()
@@ -151,6 +162,13 @@ class RegistrationNode(Node):
         stage); processed + skipped reaches the clouds received."""
         return self._done
 
+    def _on_skeleton(self, _msg: String) -> None:
+        """The joint node has a skeleton: from now on the live path comes first."""
+        if not self.registration_process.lowered:
+            self.registration_process.lower_priority()
+            self.get_logger().info(f'the skeleton is tracked: registration runs at nice '
+                                   f'{self.registration_process.nice} from now on')
+
     def _on_reset(self, _request, response):
         self._reset_requested = True
         response.success = True
@@ -174,7 +192,6 @@ class RegistrationNode(Node):
 
     def _start_registration(self) -> None:
         self.partial_frames = 0
-        self.registration = None
         self.rest_pose = None
 
     def _start_over(self) -> None:
@@ -202,7 +219,7 @@ class RegistrationNode(Node):
         new_skips, self._reported_skips = skipped - self._reported_skips, skipped
         if camera['submitted'] == 0:
             level, state = WARN, f'waiting for input on {self.resolve_topic_name("points")}'
-        elif self.registration is None:
+        elif self.rest_pose is None:
             level, state = WARN, f'waiting for the subject (no rest pose yet): {self.last_status}'
         else:
             level, state = ((WARN if new_skips else OK),
@@ -217,6 +234,7 @@ class RegistrationNode(Node):
             'skipped_for_registration': registration['dropped'],
             'failed': camera['failed'] + registration['failed'], 'waiting': registration['waiting'],
             'queue_size': self.queue_size, 'lossless': self.lossless,
+            'registration_nice': self.registration_process.nice,
             'rest_points': 0 if self.rest_pose is None else len(self.rest_pose.points)}
 
     def _failed(self, item, error) -> None:
@@ -307,8 +325,10 @@ class RegistrationNode(Node):
         if frame.epoch != self._registration_epoch:
             self._registration_epoch = frame.epoch
             self._start_registration()
+            if self.registration_process.lowered:
+                self.registration_process.restart()     # learning the new skeleton comes first
         stamp, observed, segmentation = stamp_ns(frame.header), frame.observed, frame.segmentation
-        if self.registration is None:
+        if self.rest_pose is None:
             waiting = waits_for_subject(segmentation, self.partial_frames)
             self.partial_frames += int(segmentation.touches_border)
             if waiting:
@@ -321,16 +341,26 @@ class RegistrationNode(Node):
                                          f'(of {segmentation.n_valid} valid); is the subject in view?')
                 return
             try:
-                self.rest_pose = RestPose.from_points(observed, self.rest_params)
+                rest_pose = RestPose.from_points(observed, self.rest_params)
             except RestPoseError as error:
                 self.log.warn('no_rest', f'no rest pose from this cloud: {error}')
                 return
-            self.registration = NonRigidRegistration(self.rest_pose.points, self.params)
+            self.registration_process.install(NonRigidRegistration(rest_pose.points, self.params))
+            self.rest_pose = rest_pose
             release_freed_memory()
             self.rest_pub.publish(cloud_message(self.rest_pose.points, frame.header, float64=True))
             self.get_logger().info(f'rest pose built from the cloud at {stamp * 1e-9:.3f} s '
                                    f'({len(self.rest_pose.points)} points, frame {frame.header.frame_id!r})')
-        result = self.registration.register_frame(observed)
+        try:
+            result = self.registration_process.register_frame(observed)
+        except BrokenProcessPool:
+            if not self.context.ok():
+                return
+            self.log.always('the registration process ended unexpectedly (out of memory? killed?): '
+                            'starting a new one and a new rest pose')
+            self.registration_process.restart()
+            self._start_registration()
+            return
         self.last_registration_status = f'frame {result.status}'
         if result.status != STATUS_OK:
             self.log.warn(f'status:{result.status}:{len(observed) == 0}',
@@ -352,6 +382,7 @@ class RegistrationNode(Node):
         # the registration stage first: a lossless camera stage blocked on it wakes at once
         self.registrar.stop()
         self.camera.stop()
+        self.registration_process.close()
         return super().destroy_node()
 
 

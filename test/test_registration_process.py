@@ -1,0 +1,63 @@
+"""Alg. 1 in the registration node's child process: the same results as in-process, a
+priority that drops only when asked, and a new child after the old one died."""
+import os
+import signal
+
+import numpy as np
+import pytest
+
+from skel_extract_ros.core.registration import NonRigidRegistration, RegistrationParams
+from skel_extract_ros.nodes.registration_process import BrokenProcessPool, RegistrationProcess
+
+from two_bone import two_bone_sequence
+
+
+@pytest.fixture
+def sequence():
+    rest, frames, *_ = two_bone_sequence(n_frames=6, noise=0.002)
+    return rest, frames
+
+
+@pytest.fixture
+def child():
+    process = RegistrationProcess(niceness=5)
+    yield process
+    process.close()
+
+
+def test_the_child_registers_exactly_as_the_node_would(sequence, child):
+    rest, frames = sequence
+    params = RegistrationParams()
+    here = NonRigidRegistration(rest, params)
+    child.install(NonRigidRegistration(rest, params))
+    assert child.pid != os.getpid()
+    for observed in frames:
+        expected, result = here.register_frame(observed), child.register_frame(observed)
+        assert result.status == expected.status
+        # the child keeps its state from frame to frame: each frame starts from the last one
+        np.testing.assert_array_equal(result.points, expected.points)
+
+
+def test_priority_drops_once_asked_and_a_new_child_starts_at_the_node_s(child):
+    base = os.getpriority(os.PRIO_PROCESS, 0)
+    assert child.nice == base and not child.lowered
+    child.lower_priority()
+    child.lower_priority()                              # once, not twice
+    tasks = os.listdir(f'/proc/{child.pid}/task')
+    assert len(tasks) >= 1
+    assert all(os.getpriority(os.PRIO_PROCESS, int(task)) == min(base + 5, 19) for task in tasks)
+    child.restart()
+    assert child.nice == base and not child.lowered
+
+
+def test_a_killed_child_is_reported_and_restart_gives_a_working_one(sequence, child):
+    rest, frames = sequence
+    child.install(NonRigidRegistration(rest, RegistrationParams()))
+    os.kill(child.pid, signal.SIGKILL)
+    with pytest.raises(BrokenProcessPool):
+        child.register_frame(frames[0])
+    child.restart()
+    with pytest.raises(RuntimeError, match='no registration installed'):
+        child.register_frame(frames[0])
+    child.install(NonRigidRegistration(rest, RegistrationParams()))
+    assert child.register_frame(frames[0]).status == 'ok'
