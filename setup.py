@@ -24,6 +24,7 @@ setup(
         'setuptools',
         'numpy>=1.24',
         'scipy>=1.10',
+        'pykdtree>=1.3',
         'open3d>=0.18',
         'rosbags>=0.10',
         'mcap>=1.1',

@@ -59,12 +59,14 @@ def test_replay_sample_bag_records_every_topic_and_matches_run(tmp_path, sample_
 
 
 def test_live_at_camera_rate_on_a_room_bag(tmp_path):
-    """The installed nodes on defaults, a 30 Hz best-effort camera (a 3 s room bag played
-    ten times over, the stamps moving on), a short learning window so that most of the 30 s
-    is tracking: joints come, for the frames the segmentation passes on, at a rate a
-    person-following robot can use."""
+    """The installed nodes on defaults, a 30 Hz best-effort depth camera (a 3 s room bag of
+    depth images played ten times over, the stamps moving on), a short learning window so
+    that most of the 30 s is tracking: joints come, for the frames the segmentation passes
+    on, at a rate a person-following robot can use. Depth images, as a live camera is best
+    run (input:=depth_image): 320x240 clouds of 1.2 MB each lose about a quarter of the
+    frames in DDS on a loaded 2-core machine before any node sees them."""
     bag = tmp_path / 'arm_room'
-    run_cli('simulate', '--subject', 'arm', '--frames', '90', '--scene', 'room', '--out', bag)
+    run_cli('simulate', '--subject', 'arm', '--frames', '90', '--scene', 'room', '--depth-image', '--out', bag)
     params = tmp_path / 'window.yaml'
     params.write_text('accumulator_node:\n  ros__parameters:\n    window_size: 10\n')
     done = run_cli_private_domain(51, 'replay', bag, '--out', tmp_path / 'out', '--realtime', '--loop', '10',
@@ -75,11 +77,10 @@ def test_live_at_camera_rate_on_a_room_bag(tmp_path):
     assert tracking, done.stdout
     seconds, with_joints, published, joints_hz, camera_hz, filtered = map(float, tracking.groups())
     assert seconds > 10.0 and abs(camera_hz - 30.0) < 1.5        # tracked for most of the run, at 30 Hz
-    # the live fit keeps up with the camera stage: joints for nearly every frame it passes on
-    # (this machine: 87 %), and they come at more than a third of the camera rate (17.5 Hz
-    # here; before registration left the node's process: 15 Hz, the issue's 5.6 Hz before
-    # the live fit)
-    assert with_joints >= 0.75 * filtered, done.stdout
+    # the live fit keeps up with the camera stage: joints for most frames it passes on (this
+    # machine: 78 %; the rest are frames the fit reports lost), and they come at more than a
+    # third of the camera rate (20 Hz here; the issue's 5.6 Hz before the live fit)
+    assert with_joints >= 0.6 * filtered, done.stdout
     assert joints_hz >= 10.0, done.stdout
     registration_log = (tmp_path / 'out' / 'logs' / 'registration_node.log').read_text()
     assert 'the skeleton is tracked: registration runs at nice' in registration_log

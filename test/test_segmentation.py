@@ -224,3 +224,15 @@ def test_back_projection_is_the_pinhole_model():
     cloud = back_project(depth, 100.0, 50.0, 1.5, 1.0)
     np.testing.assert_allclose(cloud[0, 0], [(0 - 1.5) * 2 / 100, (0 - 1.0) * 2 / 50, 2.0])
     np.testing.assert_allclose(cloud[2, 3], [(3 - 1.5) * 2 / 100, (2 - 1.0) * 2 / 50, 2.0])
+
+
+def test_the_fast_opening_is_scipy_s_binary_opening_up_to_the_image_border():
+    from scipy import ndimage
+
+    from skel_extract_ros.core.segmentation import _opening3x3
+    rng = np.random.default_rng(4)
+    for density in (0.3, 0.7, 0.95):
+        mask = rng.uniform(size=(60, 80)) < density
+        mask[:, :3] = True                      # blobs touching the border
+        expected = ndimage.binary_opening(mask, structure=np.ones((3, 3), bool))
+        np.testing.assert_array_equal(_opening3x3(mask), expected)

@@ -21,6 +21,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .point_sets import voxel_centroids
+
 
 @dataclass
 class DeformationGraph:
@@ -49,14 +51,12 @@ class DeformationGraph:
         Nodes are voxel-grid representatives snapped to the nearest rest point, so they lie
         on the surface. `n_influence` (k) nodes carry each point.
         """
-        import open3d as o3d  # lazy: the accumulator and joint nodes never load it
         rest_points = np.asarray(rest_points, dtype=np.float64)
         if len(rest_points) < n_influence + 1:
             raise ValueError(f'need more than {n_influence} rest points, got {len(rest_points)}')
         if node_spacing <= 0:
             raise ValueError(f'node_spacing must be positive, got {node_spacing}')
-        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(rest_points))
-        centres = np.asarray(cloud.voxel_down_sample(node_spacing).points)
+        centres = voxel_centroids(rest_points, node_spacing)
         _, nearest = cKDTree(rest_points).query(centres)
         node_positions = rest_points[np.unique(nearest)]
         if len(node_positions) < n_influence + 1:

@@ -7,12 +7,10 @@ Steps, in order, each switchable: drop NaN/inf; crop box; voxel downsampling to 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
-if TYPE_CHECKING:
-    import open3d as o3d
+from .point_sets import ransac_plane, statistical_inliers, voxel_centroids
 
 
 class PreprocessError(ValueError):
@@ -60,7 +58,6 @@ class Preprocessor:
 
     def __call__(self, points: np.ndarray) -> np.ndarray:
         """(N, 3) raw points (NaN allowed) -> (K, 3) float64 clean points; K may be 0."""
-        import open3d as o3d  # lazy: the accumulator and joint nodes never load it
         p = self.params
         points = np.asarray(points)
         if points.ndim != 2 or points.shape[1] != 3:
@@ -74,45 +71,33 @@ class Preprocessor:
             points = points[np.all((points >= low) & (points <= high), axis=1)]
         if len(points) == 0:
             return points.reshape(0, 3)
-        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
         if p.target_points > 0 and len(points) > p.target_points:
-            cloud = self._downsample(cloud)
-        if p.remove_plane and len(cloud.points) >= 3 * 10:
-            _, inliers = cloud.segment_plane(p.plane_distance, 3, 200, seed=p.seed) \
-                if _accepts_seed() else cloud.segment_plane(p.plane_distance, 3, 200)
-            if len(inliers) >= p.plane_min_fraction * len(cloud.points):
-                cloud = cloud.select_by_index(inliers, invert=True)
-        if p.keep_largest_cluster and len(cloud.points) > p.cluster_min_points:
+            points = self._downsample(points)
+        if p.remove_plane and len(points) >= 3 * 10:
+            plane = ransac_plane(points, p.plane_distance, 200, self._rng)
+            if plane is not None and len(plane[2]) >= p.plane_min_fraction * len(points):
+                points = np.delete(points, plane[2], axis=0)
+        if p.keep_largest_cluster and len(points) > p.cluster_min_points:
+            import open3d as o3d  # lazy, and only for this option: 170 MB (core/point_sets.py)
+            cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
             labels = np.asarray(cloud.cluster_dbscan(p.cluster_eps, p.cluster_min_points))
             if (labels >= 0).any():
-                largest = np.bincount(labels[labels >= 0]).argmax()
-                cloud = cloud.select_by_index(np.flatnonzero(labels == largest))
-        if p.outlier_neighbours > 0 and len(cloud.points) > p.outlier_neighbours:
-            cloud, _ = cloud.remove_statistical_outlier(p.outlier_neighbours, p.outlier_std_ratio)
-        return np.asarray(cloud.points)
+                points = points[labels == np.bincount(labels[labels >= 0]).argmax()]
+        if p.outlier_neighbours > 0 and len(points) > p.outlier_neighbours:
+            points = points[statistical_inliers(points, p.outlier_neighbours, p.outlier_std_ratio)]
+        return points
 
-    def _downsample(self, cloud: o3d.geometry.PointCloud) -> o3d.geometry.PointCloud:
-        """Voxel-downsample to within 25 % of target_points, adapting the voxel size.
+    def _downsample(self, points: np.ndarray) -> np.ndarray:
+        """Voxel-downsample (N, 3) points to within 25 % of target_points, adapting the voxel size.
 
         Points on a surface scale with 1 / voxel^2, so each retry rescales by sqrt(ratio).
         """
         target = self.params.target_points
         best = None
         for _ in range(4):
-            down = cloud.voxel_down_sample(self.voxel_size)
-            count = len(down.points)
-            best = down
-            ratio = count / target
+            best = voxel_centroids(points, self.voxel_size)
+            ratio = len(best) / target
             if 0.8 <= ratio <= 1.25:
                 break
             self.voxel_size = float(np.clip(self.voxel_size * np.sqrt(ratio), 1e-4, 1.0))
         return best
-
-
-def _accepts_seed() -> bool:
-    import open3d as o3d  # lazy: the accumulator and joint nodes never load it
-    import inspect
-    try:
-        return 'seed' in inspect.signature(o3d.geometry.PointCloud.segment_plane).parameters
-    except (TypeError, ValueError):
-        return False

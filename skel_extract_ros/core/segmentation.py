@@ -3,7 +3,7 @@
 A camera in a room sees floors, walls, tables and still objects beside the subject. Per
 frame (organized clouds, the common case of a still depth camera):
 
-1. **Planes** (floor, walls, large table tops) are found by RANSAC (Open3D) on a subsample
+1. **Planes** (floor, walls, large table tops) are found by RANSAC (core/point_sets.py) on a subsample
    of the pixels that have not moved recently, refreshed every `plane_refresh` frames, and
    kept only if they extend at least `min_plane_extent` in both directions (a torso is a
    plane too, but a small one). A pixel is on a plane when its depth along its own ray is
@@ -41,6 +41,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
+from .point_sets import ransac_plane, voxel_centroids
 
 STATUS_SUBJECT = 'subject'
 STATUS_NOBODY = 'nobody'
@@ -130,6 +131,14 @@ class Segmentation:
         """The same without the mask (for keeping one per frame of a long sequence)."""
         return Segmentation(np.empty(0, dtype=bool), self.status, self.n_valid, self.n_moving_regions,
                             self.touches_border, self.noise_c, self.n_planes, self.n_subject)
+
+
+def _opening3x3(mask: np.ndarray) -> np.ndarray:
+    """ndimage.binary_opening(mask, np.ones((3, 3))) (outside the image counts as False), as
+    separable minimum and maximum filters: the same pixels in a third of the time."""
+    as_bytes = mask.view(np.uint8)
+    eroded = ndimage.minimum_filter(as_bytes, size=3, mode='constant', cval=0)
+    return ndimage.maximum_filter(eroded, size=3, mode='constant', cval=0).view(bool)
 
 
 def _plane_depth(points: np.ndarray, normal: np.ndarray, offset: float) -> np.ndarray:
@@ -237,7 +246,6 @@ class SubjectSegmenter:
         points' pixels (K, 2: row, column) in an image of `shape`, a plane must also reach
         the image border: floors and walls run out of view, a still subject's flank (a
         cow's side is a 2 x 1 m plane) lies inside it."""
-        import open3d as o3d  # lazy: the accumulator and joint nodes never load it
         p = self.params
         planes, noise = [], None
         remaining = points
@@ -245,18 +253,12 @@ class SubjectSegmenter:
         for _ in range(p.max_planes if max_planes is None else max_planes):
             if len(remaining) < 500:
                 break
-            cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(remaining))
             threshold = 3.0 * max(self.noise_c or p.min_noise_c, p.min_noise_c) * float(np.median(
                 np.linalg.norm(remaining, axis=1))) ** 2
-            # Open3D's RANSAC draws from its global generator: seed it for repeatable runs.
-            o3d.utility.random.seed(p.seed + len(planes))
-            model, inliers = cloud.segment_plane(max(threshold, 0.005), 3, 300)
-            inliers = np.asarray(inliers)
-            if len(inliers) < (0.05 * len(points) if min_inliers is None else min_inliers):
+            plane = ransac_plane(remaining, max(threshold, 0.005), 300, np.random.default_rng(p.seed + len(planes)))
+            if plane is None or len(plane[2]) < (0.05 * len(points) if min_inliers is None else min_inliers):
                 break
-            normal, d = np.asarray(model[:3], float), float(model[3])
-            scale = np.linalg.norm(normal)
-            normal, d = normal / scale, d / scale
+            normal, d, inliers = plane
             on = remaining[inliers]
             # extent in the plane: spread along its two in-plane principal directions
             centred = on - on.mean(axis=0)
@@ -284,8 +286,14 @@ class SubjectSegmenter:
         """(...) bool: points (..., 3) within noise_sigmas deviations of a plane, in depth
         along their own ray."""
         on = np.zeros(points.shape[:-1], dtype=bool)
-        for normal, d in self._planes:
-            on |= np.abs(_plane_depth(points, normal, d) - points[..., 2]) < self.params.noise_sigmas * sigma
+        if not self._planes:
+            return on
+        # |plane depth - z| = |z| |n.p + d| / |n.p|: compared without the division
+        z, allowed = np.abs(points[..., 2]), self.params.noise_sigmas * sigma
+        with np.errstate(invalid='ignore'):
+            for normal, d in self._planes:
+                along = points @ normal
+                on |= z * np.abs(along + d) < allowed * np.abs(along)
         return on
 
     def _maybe_refit_planes(self, points: np.ndarray, still: np.ndarray, shape: tuple) -> None:
@@ -348,7 +356,7 @@ class SubjectSegmenter:
                     np.where(valid, depth, 0.0), np.where(np.isfinite(previous), previous, 0.0)) ** 2
                 changed = np.abs(far - previous) > tolerance
             changed &= valid | np.isfinite(previous)
-            moved = ndimage.binary_opening(changed, structure=np.ones((3, 3), bool))
+            moved = _opening3x3(changed)
         else:
             moved = np.zeros(shape, dtype=bool)
         self._ranges.append(far)
@@ -384,7 +392,6 @@ class SubjectSegmenter:
         edge[:, :-1] |= dx
         core = candidates & ~edge
         labels, n_regions = ndimage.label(core)
-        index = np.arange(1, n_regions + 1)
         if n_regions == 0:
             return self._nobody(valid, c)
         flat_labels = labels.reshape(-1)
@@ -416,16 +423,16 @@ class SubjectSegmenter:
 
         # Grow from the primary: a region joins when it comes within reach of any region
         # already joined (a hoof joins the leg that joined the body), a few passes at most.
-        candidates_nearby = [int(label) - 1 for label in np.unique(labels[window]) if label > 0]
+        # A few pixels are noise (a wrong depth here and there), not a body part.
+        noise = ~chosen_from & (sizes < max(20.0, 0.002 * sizes[primary]))
+        in_window = np.bincount(labels[window].ravel(), minlength=n_regions + 1)[1:] > 0
+        candidates_nearby = np.flatnonzero(in_window & ~noise)
         joined_points = [region_points(primary)]
         for _ in range(3):
             tree = cKDTree(np.concatenate([pts[:: max(1, len(pts) // 1500)] for pts in joined_points]))
             added = False
             for region in candidates_nearby:
                 if near[region]:
-                    continue
-                # A few pixels are noise (a wrong depth here and there), not a body part.
-                if not chosen_from[region] and sizes[region] < max(20.0, 0.002 * sizes[primary]):
                     continue
                 # A moving part (a hand split off at a depth jump) may be a little farther; a
                 # moving region as large as the subject is someone else.
@@ -454,13 +461,18 @@ class SubjectSegmenter:
         others = np.flatnonzero(moving & ~near)
         n_moving = 1 + self._count_groups([self._region_box(points, labels, slices, r) for r in others],
                                           sizes[others], 0.1 * sizes[near].sum())
-        subject = np.isin(labels, index[near])
+        subject = np.concatenate([[False], near])[labels]
         # Give back the subject's own boundary pixels (they are "edges" against the
-        # background) unless they lie behind it: mixed pixels between it and the wall.
-        ring = ndimage.binary_dilation(subject, iterations=2) & candidates & ~subject
+        # background) unless they lie behind it: mixed pixels between it and the wall. Within
+        # the subject's box and 4 pixels more (the ring is 2 pixels wide, the depth it is
+        # compared with 2 more), which is all these filters can reach.
+        rows, cols = np.flatnonzero(subject.any(axis=1)), np.flatnonzero(subject.any(axis=0))
+        box = (slice(max(rows[0] - 4, 0), rows[-1] + 5), slice(max(cols[0] - 4, 0), cols[-1] + 5))
+        inside = subject[box]
+        ring = ndimage.binary_dilation(inside, iterations=2) & candidates[box] & ~inside
         with np.errstate(invalid='ignore'):
-            nearest = ndimage.maximum_filter(np.where(subject, ranges, -np.inf), size=5)
-            subject |= ring & (ranges <= nearest + jump)
+            nearest = ndimage.maximum_filter(np.where(inside, ranges[box], -np.inf), size=5)
+            inside |= ring & (ranges[box] <= nearest + jump[box])
         if subject.sum() < p.min_subject_points:
             return self._nobody(valid, c)
         self._subject = subject
@@ -497,15 +509,14 @@ class SubjectSegmenter:
     # -- unorganized ---------------------------------------------------------------------
     def _unorganized(self, points: np.ndarray, valid: np.ndarray) -> Segmentation:
         """Planes, DBSCAN regions and nearest-neighbour motion on a voxel grid."""
-        import open3d as o3d  # lazy: the accumulator and joint nodes never load it
+        import open3d as o3d  # lazy, for DBSCAN: organized clouds never load it (core/point_sets.py)
         p = self.params
         finite = points[valid]
         if len(finite) < p.min_subject_points:
             return Segmentation(np.zeros(len(points), bool), STATUS_NOBODY, int(valid.sum()))
-        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(finite))
         extent = float(np.linalg.norm(np.ptp(finite, axis=0)))
         voxel = max(extent / 150.0, 0.01)
-        down = np.asarray(cloud.voxel_down_sample(voxel).points)
+        down = voxel_centroids(finite, voxel)
         c = self._update_noise(None)
         sigma = c * down[:, 2] ** 2
         if self._frames_since_planes is None or self._frames_since_planes >= p.plane_refresh:

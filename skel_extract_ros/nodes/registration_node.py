@@ -6,11 +6,11 @@ Subscribes  points            sensor_msgs/PointCloud2  sensor-data QoS (best eff
             depth/image       sensor_msgs/Image (16UC1 mm, 32FC1 m) and
             depth/camera_info sensor_msgs/CameraInfo, with input:=depth_image: back-projected
                               into the same organized cloud
+            skeleton/description std_msgs/String (transient local): the joint node tracks a
+                              skeleton; from then on Alg. 1 runs registration_niceness nicer
 Publishes   registered_points PointCloud2 (M points, fixed order, input header; ok frames only)
             filtered_points   PointCloud2 (the subject, preprocessed, input header; every decodable cloud)
             rest_points       PointCloud2 (float64, transient local; the rest pose Q, header of its cloud)
-Subscribes  skeleton/description std_msgs/String (transient local): the joint node tracks a
-                              skeleton; from then on Alg. 1 runs at registration_niceness
 Services    ~/reset           std_srvs/Trigger: forget the rest pose, build a new one
             ~/reset_background std_srvs/Trigger: forget the learned scene (planes, motion
                               evidence, the subject) after the camera moved
@@ -44,7 +44,7 @@ from std_srvs.srv import Trigger
 
 from ..core.preprocess import PreprocessParams, Preprocessor
 from ..core.registration import STATUS_OK, NonRigidRegistration, RegistrationParams
-from ..core.rest_pose import RestPose, RestPoseError, RestPoseParams
+from ..core.rest_pose import RestPoseError, RestPoseParams
 from ..core.segmentation import STATUS_NOBODY, SegmentationParams, SubjectSegmenter
 from ..core.sequence import PARTIAL_VIEW_PATIENCE_FRAMES, waits_for_subject
 from ..depth_image import DepthDecodeError, depth_to_cloud
@@ -54,7 +54,7 @@ from .common import (LATCHED_QOS, SENSOR_QOS, STREAM_QOS, ParameterError, Thrott
                      declare_dataclass, release_freed_memory, run_node)
 from .conversions import cloud_message, stamp_ns
 from .diagnostics import OK, WARN, NodeDiagnostics
-from .registration_process import BrokenProcessPool, RegistrationProcess
+from .registration_process import BrokenProcessPool, RegistrationProcess, build_rest_pose
 from .worker import Worker
 
 SECTION = 'registration_node'
@@ -86,9 +86,9 @@ class RegistrationNode(Node):
             raise ParameterError(f"parameter input_reliability must be 'best_effort' or 'reliable', "
                                  f'got {reliability!r}')
         self.input = declare(self, SECTION, 'input', NODE_ONLY[SECTION]['input'])
-        niceness = declare(self, SECTION, 'registration_niceness', NODE_ONLY[SECTION]['registration_niceness'])
         if self.input not in ('cloud', 'depth_image'):
             raise ParameterError(f"parameter input must be 'cloud' or 'depth_image', got {self.input!r}")
+        niceness = declare(self, SECTION, 'registration_niceness', NODE_ONLY[SECTION]['registration_niceness'])
         try:
             (self.params, self.rest_params, self.preprocess_params,
              self.segmentation_params) = registration_params_from_dict(values)
@@ -99,8 +99,8 @@ class RegistrationNode(Node):
         self.filtered_pub = self.create_publisher(PointCloud2, 'filtered_points', STREAM_QOS)
         self.rest_pub = self.create_publisher(PointCloud2, 'rest_points', LATCHED_QOS)
         self.create_service(Trigger, '~/reset', self._on_reset)
-        self.create_subscription(String, 'skeleton/description', self._on_skeleton, LATCHED_QOS)
         self.create_service(Trigger, '~/reset_background', self._on_reset_background)
+        self.create_subscription(String, 'skeleton/description', self._on_skeleton, LATCHED_QOS)
         # set by the services, acted on by the camera stage before its next cloud
         self._background_reset_requested = False
         self._reset_requested = False
@@ -341,7 +341,7 @@ class RegistrationNode(Node):
                                          f'(of {segmentation.n_valid} valid); is the subject in view?')
                 return
             try:
-                rest_pose = RestPose.from_points(observed, self.rest_params)
+                rest_pose = build_rest_pose(observed, self.rest_params)
             except RestPoseError as error:
                 self.log.warn('no_rest', f'no rest pose from this cloud: {error}')
                 return

@@ -12,9 +12,12 @@ on 2 cores, bench/README.md "Registration in its own process").
 
 No rclpy here (the child imports only this module, numpy and scipy). The child is
 spawned, not forked: forking a process that runs DDS threads is not safe. The
-NonRigidRegistration object is built in the node (it needs Open3D, which the child never
-loads) and sent over once per rest pose; afterwards only the frame's observed points
-(N, 3) and its FrameResult cross.
+NonRigidRegistration object is built in the node and sent over once per rest pose;
+afterwards only the frame's observed points (N, 3) and its FrameResult cross.
+
+The rest pose (Open3D's Poisson reconstruction) is built in a process of its own that ends
+with it (`build_rest_pose`): Open3D costs a process 170 MB resident for as long as it
+lives, and the node needs it once per rest pose.
 """
 from __future__ import annotations
 
@@ -27,8 +30,9 @@ from concurrent.futures.process import BrokenProcessPool
 import numpy as np
 
 from ..core.registration import FrameResult, NonRigidRegistration
+from ..core.rest_pose import RestPose, RestPoseParams
 
-__all__ = ['BrokenProcessPool', 'RegistrationProcess']
+__all__ = ['BrokenProcessPool', 'RegistrationProcess', 'build_rest_pose']
 
 # in the child: the registration of the current rest pose (its state moves frame to frame)
 _registration: NonRigidRegistration | None = None
@@ -108,3 +112,13 @@ class RegistrationProcess:
 
     def close(self) -> None:
         self._pool.shutdown(wait=True, cancel_futures=True)
+
+
+def build_rest_pose(observed: np.ndarray, params: RestPoseParams) -> RestPose:
+    """RestPose.from_points(observed (N, 3) m, params) in a short-lived child process (a few
+    seconds more than in-process: a Python start and the Open3D import). Raises what
+    from_points raises (RestPoseError), or BrokenProcessPool if the child died."""
+    with ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context('spawn'),
+                             initializer=_start_child) as pool:
+        return pool.submit(RestPose.from_points, np.ascontiguousarray(observed, dtype=np.float64),
+                           params).result()
