@@ -90,7 +90,7 @@ _REGISTRATION = {
                               'joint node tracks a skeleton: when the cores are short, learning waits and the '
                               'live path (segmentation, filtered_points, the joint fit) keeps the camera rate; '
                               'while learning the first skeleton it runs at the node\'s priority; 0 = never '
-                              'lowered', (0, 19)),
+                              'lowered (nor with lossless)', (0, 19)),
     'lossless': ('never skip a cloud: when registration falls behind, segmentation waits for it and '
                  'so does the input (bag replay with input_reliability reliable; replay sets it)', _ANY),
 }

@@ -3,10 +3,10 @@
 A camera in a room sees floors, walls, tables and still objects beside the subject. Per
 frame (organized clouds, the common case of a still depth camera):
 
-1. **Planes** (floor, walls, large table tops) are found by RANSAC (core/point_sets.py) on a subsample
-   of the pixels that have not moved recently, refreshed every `plane_refresh` frames, and
-   kept only if they extend at least `min_plane_extent` in both directions (a torso is a
-   plane too, but a small one). A pixel is on a plane when its depth along its own ray is
+1. **Planes** (floor, walls, large table tops) are found by RANSAC (core/point_sets.py) on a
+   subsample of the pixels that have not moved recently, refreshed every `plane_refresh`
+   frames, and kept only if they extend at least `min_plane_extent` in both directions (a
+   torso is a plane too, but a small one). A pixel is on a plane when its depth along its own ray is
    within `noise_sigmas` noise deviations of the plane's: at grazing angles (the floor near
    the feet) a perpendicular distance would eat the feet.
 2. **Regions**: the remaining pixels are split at depth jumps into connected regions
@@ -41,6 +41,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
+
 from .point_sets import ransac_plane, voxel_centroids
 
 STATUS_SUBJECT = 'subject'
@@ -135,7 +136,8 @@ class Segmentation:
 
 def _opening3x3(mask: np.ndarray) -> np.ndarray:
     """ndimage.binary_opening(mask, np.ones((3, 3))) (outside the image counts as False), as
-    separable minimum and maximum filters: the same pixels in a third of the time."""
+    separable minimum and maximum filters: the same pixels in 60 % of the time (1.3 against
+    2.3 ms at 320x240)."""
     as_bytes = mask.view(np.uint8)
     eroded = ndimage.minimum_filter(as_bytes, size=3, mode='constant', cval=0)
     return ndimage.maximum_filter(eroded, size=3, mode='constant', cval=0).view(bool)

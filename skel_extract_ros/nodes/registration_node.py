@@ -163,8 +163,9 @@ class RegistrationNode(Node):
         return self._done
 
     def _on_skeleton(self, _msg: String) -> None:
-        """The joint node has a skeleton: from now on the live path comes first."""
-        if not self.registration_process.lowered:
+        """The joint node has a skeleton: from now on the live path comes first (not with
+        lossless: there every frame waits for its registration, and a nicer one only slows all)."""
+        if not self.lossless and not self.registration_process.lowered:
             self.registration_process.lower_priority()
             self.get_logger().info(f'the skeleton is tracked: registration runs at nice '
                                    f'{self.registration_process.nice} from now on')

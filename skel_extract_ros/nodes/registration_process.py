@@ -10,8 +10,9 @@ matters and runs at the node's priority; once the skeleton is tracked, `lower_pr
 makes the scheduler give a short CPU to learning, not to the live path (measured at 30 Hz
 on 2 cores, bench/README.md "Registration in its own process").
 
-No rclpy here (the child imports only this module, numpy and scipy). The child is
-spawned, not forked: forking a process that runs DDS threads is not safe. The
+No rclpy in this module; the child is spawned, not forked (forking a process that runs
+DDS threads is not safe), and spawn imports the node's main module again in it, so rclpy
+comes along (about 20 MB of the child's 112). The
 NonRigidRegistration object is built in the node and sent over once per rest pose;
 afterwards only the frame's observed points (N, 3) and its FrameResult cross.
 
