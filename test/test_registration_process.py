@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from skel_extract_ros.core.registration import NonRigidRegistration, RegistrationParams
-from skel_extract_ros.nodes.registration_process import BrokenProcessPool, RegistrationProcess
+from skel_extract_ros.nodes.registration_process import ChildProcessDied, RegistrationProcess, build_rest_pose
 
 from two_bone import two_bone_sequence
 
@@ -54,10 +54,30 @@ def test_a_killed_child_is_reported_and_restart_gives_a_working_one(sequence, ch
     rest, frames = sequence
     child.install(NonRigidRegistration(rest, RegistrationParams()))
     os.kill(child.pid, signal.SIGKILL)
-    with pytest.raises(BrokenProcessPool):
+    with pytest.raises(ChildProcessDied):
         child.register_frame(frames[0])
     child.restart()
     with pytest.raises(RuntimeError, match='no registration installed'):
         child.register_frame(frames[0])
     child.install(NonRigidRegistration(rest, RegistrationParams()))
     assert child.register_frame(frames[0]).status == 'ok'
+
+
+def test_the_child_loads_neither_rclpy_nor_open3d(sequence, child):
+    rest, frames = sequence
+    child.install(NonRigidRegistration(rest, RegistrationParams()))
+    child.register_frame(frames[0])                   # answered: every import is done
+    maps = open(f'/proc/{child.pid}/maps').read()
+    assert 'numpy' in maps or 'libopenblas' in maps or 'scipy' in maps
+    assert 'open3d' not in maps and 'rclpy' not in maps and 'librcl' not in maps
+
+
+def test_the_rest_pose_is_built_in_a_child_that_ends_with_it(human_clean):
+    from skel_extract_ros.core.preprocess import Preprocessor
+    from skel_extract_ros.core.rest_pose import RestPose, RestPoseError, RestPoseParams
+    params = RestPoseParams(n_points=500)
+    observed = Preprocessor()(human_clean.clouds[0].reshape(-1, 3))
+    here, there = RestPose.from_points(observed, params), build_rest_pose(observed, params)
+    np.testing.assert_array_equal(there.points, here.points)     # the same deterministic steps
+    with pytest.raises(RestPoseError, match='usable points'):
+        build_rest_pose(observed[:50], params)

@@ -54,7 +54,7 @@ from .common import (LATCHED_QOS, SENSOR_QOS, STREAM_QOS, ParameterError, Thrott
                      declare_dataclass, release_freed_memory, run_node)
 from .conversions import cloud_message, stamp_ns
 from .diagnostics import OK, WARN, NodeDiagnostics
-from .registration_process import BrokenProcessPool, RegistrationProcess, build_rest_pose
+from .registration_process import ChildProcessDied, RegistrationProcess, build_rest_pose
 from .worker import Worker
 
 SECTION = 'registration_node'
@@ -354,7 +354,7 @@ class RegistrationNode(Node):
                                    f'({len(self.rest_pose.points)} points, frame {frame.header.frame_id!r})')
         try:
             result = self.registration_process.register_frame(observed)
-        except BrokenProcessPool:
+        except ChildProcessDied:
             if not self.context.ok():
                 return
             self.log.always('the registration process ended unexpectedly (out of memory? killed?): '

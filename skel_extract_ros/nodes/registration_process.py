@@ -1,5 +1,5 @@
 """Alg. 1 in a child process of the registration node, at a lower CPU priority once the
-skeleton is tracked.
+skeleton is tracked; the rest pose in a child process that ends with it.
 
 Why a process: registration is up to seconds of numpy calls on small arrays a frame, and
 in the node's own process it holds the GIL most of the time, so the camera stage
@@ -10,59 +10,83 @@ matters and runs at the node's priority; once the skeleton is tracked, `lower_pr
 makes the scheduler give a short CPU to learning, not to the live path (measured at 30 Hz
 on 2 cores, bench/README.md "Registration in its own process").
 
-No rclpy in this module; the child is spawned, not forked (forking a process that runs
-DDS threads is not safe), and spawn imports the node's main module again in it, so rclpy
-comes along (about 20 MB of the child's 112). The
-NonRigidRegistration object is built in the node and sent over once per rest pose;
-afterwards only the frame's observed points (N, 3) and its FrameResult cross.
+Why not multiprocessing: its spawn start imports the node's main module again in the child
+(rclpy and the message packages, about 20 MB), adds a resource-tracker process (13 MB) and
+its fork start is unsafe in a process running DDS threads. The child here is `python -m
+skel_extract_ros.nodes.registration_process`: it imports numpy, scipy and the core modules
+only, reads (call, arguments) pickles on stdin and answers (ok, value) pickles on stdout,
+and ends when its stdin closes (the node ended or died). The NonRigidRegistration object
+is built in the node and sent once per rest pose; afterwards only the frame's observed
+points (N, 3) and its FrameResult (~50 kB) cross.
 
-The rest pose (Open3D's Poisson reconstruction) is built in a process of its own that ends
+The rest pose (Open3D's Poisson reconstruction) is built in a child of its own that ends
 with it (`build_rest_pose`): Open3D costs a process 170 MB resident for as long as it
 lives, and the node needs it once per rest pose.
 """
 from __future__ import annotations
 
-import multiprocessing
 import os
+import pickle
 import signal
-from concurrent.futures import ProcessPoolExecutor
-from concurrent.futures.process import BrokenProcessPool
+import subprocess
+import sys
+import threading
 
 import numpy as np
 
 from ..core.registration import FrameResult, NonRigidRegistration
 from ..core.rest_pose import RestPose, RestPoseParams
 
-__all__ = ['BrokenProcessPool', 'RegistrationProcess', 'build_rest_pose']
-
-# in the child: the registration of the current rest pose (its state moves frame to frame)
-_registration: NonRigidRegistration | None = None
+__all__ = ['ChildProcessDied', 'RegistrationProcess', 'build_rest_pose']
 
 
-def _start_child() -> None:
-    # Ctrl-C reaches the whole process group: the node, not the child, decides when it ends
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+class ChildProcessDied(RuntimeError):
+    """The child process ended (killed, out of memory) before it answered."""
 
 
-def _install(registration: NonRigidRegistration) -> None:
-    global _registration
-    _registration = registration
+class _Child:
+    """One `python -m` child running _serve(); call() is one request and its answer."""
 
+    def __init__(self):
+        # stderr stays the node's: a traceback of the child shows in the node's log
+        self._process = subprocess.Popen([sys.executable, '-m', __name__], stdin=subprocess.PIPE,
+                                         stdout=subprocess.PIPE, close_fds=True)
+        self.pid = self._process.pid
+        self._lock = threading.Lock()
 
-def _register_frame(observed: np.ndarray) -> FrameResult:
-    if _registration is None:
-        raise RuntimeError('no registration installed in the registration process')
-    return _registration.register_frame(observed)
+    def call(self, name: str, *args):
+        with self._lock:
+            try:
+                pickle.dump((name, args), self._process.stdin, protocol=pickle.HIGHEST_PROTOCOL)
+                self._process.stdin.flush()
+                ok, value = pickle.load(self._process.stdout)
+            except (EOFError, OSError, pickle.UnpicklingError) as error:
+                raise ChildProcessDied(f'the child process {self.pid} ended (exit code '
+                                       f'{self._process.poll()})') from error
+        if not ok:
+            raise value
+        return value
+
+    def close(self, timeout: float = 10.0) -> None:
+        """Close its stdin (it ends after the call in progress) and reap it."""
+        try:
+            self._process.stdin.close()
+        except OSError:
+            pass
+        try:
+            self._process.wait(timeout)
+        except subprocess.TimeoutExpired:
+            self._process.kill()
+            self._process.wait()
 
 
 class RegistrationProcess:
-    """A NonRigidRegistration run in one spawned child process.
+    """A NonRigidRegistration run in one child process.
 
     niceness: what `lower_priority` adds to the child's nice value (0 = none; 19 = only
-    idle CPU). The child starts at once (about a second of imports), not on the first frame,
-    at the node's priority. Calls block the calling thread (not the GIL) until the child
-    answers; a child that died (out of memory, killed) raises BrokenProcessPool from every
-    later call, and `restart` gives a new one.
+    idle CPU). The child starts at once, at the node's priority. Calls block the calling
+    thread (not the GIL) until the child answers; a child that died (out of memory, killed)
+    raises ChildProcessDied, and `restart` gives a new one.
     """
 
     def __init__(self, niceness: int = 0):
@@ -70,9 +94,8 @@ class RegistrationProcess:
         self._start()
 
     def _start(self) -> None:
-        self._pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context('spawn'),
-                                         initializer=_start_child)
-        self.pid = self._pool.submit(os.getpid).result()
+        self._child = _Child()
+        self.pid = self._child.pid
         self.lowered = False
 
     def lower_priority(self) -> None:
@@ -81,7 +104,7 @@ class RegistrationProcess:
             return
         value = min(os.getpriority(os.PRIO_PROCESS, 0) + self.niceness, 19)
         # Linux keeps a nice value per thread: set it on every thread of the child (numpy's
-        # BLAS threads were started before any call could); raising it needs no privilege
+        # BLAS threads start with it); raising it needs no privilege
         try:
             for task in os.listdir(f'/proc/{self.pid}/task'):
                 os.setpriority(os.PRIO_PROCESS, int(task), value)
@@ -99,27 +122,67 @@ class RegistrationProcess:
 
     def install(self, registration: NonRigidRegistration) -> None:
         """Register the next frames with `registration` (a new rest pose)."""
-        self._pool.submit(_install, registration).result()
+        self._child.call('install', registration)
 
     def register_frame(self, observed: np.ndarray) -> FrameResult:
         """observed: (N, 3) subject points, metres -> the FrameResult of Alg. 1 on it."""
-        return self._pool.submit(_register_frame, np.ascontiguousarray(observed, dtype=np.float64)).result()
+        return self._child.call('register_frame', np.ascontiguousarray(observed, dtype=np.float64))
 
     def restart(self) -> None:
-        """A new child at the node's priority (after BrokenProcessPool, or to learn a new
+        """A new child at the node's priority (after ChildProcessDied, or to learn a new
         skeleton first); it needs `install` again."""
-        self._pool.shutdown(wait=False, cancel_futures=True)
+        self._child.close(timeout=0.0)
         self._start()
 
     def close(self) -> None:
-        self._pool.shutdown(wait=True, cancel_futures=True)
+        self._child.close()
 
 
 def build_rest_pose(observed: np.ndarray, params: RestPoseParams) -> RestPose:
     """RestPose.from_points(observed (N, 3) m, params) in a short-lived child process (a few
     seconds more than in-process: a Python start and the Open3D import). Raises what
-    from_points raises (RestPoseError), or BrokenProcessPool if the child died."""
-    with ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context('spawn'),
-                             initializer=_start_child) as pool:
-        return pool.submit(RestPose.from_points, np.ascontiguousarray(observed, dtype=np.float64),
-                           params).result()
+    from_points raises (RestPoseError), or ChildProcessDied."""
+    child = _Child()
+    try:
+        return child.call('rest_pose', np.ascontiguousarray(observed, dtype=np.float64), params)
+    finally:
+        child.close()
+
+
+def _serve() -> None:
+    """The child: answer calls until stdin closes."""
+    # Ctrl-C reaches the whole process group: the node, not the child, decides when it ends
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    requests, answers = sys.stdin.buffer, sys.stdout.buffer
+    sys.stdout = sys.stderr            # a stray print must not corrupt the answers
+    registration = None
+    while True:
+        try:
+            name, args = pickle.load(requests)
+        except EOFError:
+            return
+        try:
+            if name == 'install':
+                registration, value = args[0], None
+            elif name == 'register_frame':
+                if registration is None:
+                    raise RuntimeError('no registration installed in the registration process')
+                value = registration.register_frame(*args)
+            elif name == 'rest_pose':
+                value = RestPose.from_points(*args)
+            else:
+                raise ValueError(f'unknown call {name!r}')
+            answer = (True, value)
+        except Exception as error:  # sent back and raised in the node; the child goes on
+            answer = (False, error)
+        try:
+            data = pickle.dumps(answer, protocol=pickle.HIGHEST_PROTOCOL)
+        except Exception as error:  # an exception that does not pickle: its text does
+            data = pickle.dumps((False, RuntimeError(f'{type(answer[1]).__name__}: {answer[1]} '
+                                                     f'(unpicklable: {error})')))
+        answers.write(data)
+        answers.flush()
+
+
+if __name__ == '__main__':
+    _serve()
