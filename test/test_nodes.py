@@ -403,3 +403,12 @@ def test_joint_estimation_node_ignores_malformed_structures(ros, monkeypatch, ma
     pub.publish(String(data=json.dumps(document)))
     ros.wait(lambda: len(joints) == 6, what='joints after the malformed structure')
     assert sorted(stamps_of(joints)) == [T0 + i * DT for i in range(6)]
+
+
+def test_a_live_frame_that_fails_is_one_warning_with_its_stamp(ros):
+    # the live worker's items are (header, points); the handler once read item[0].header
+    # and raised at shutdown, ending the worker thread
+    node = ros.add(JointEstimationNode)
+    node._live_failed((header(T0 + 7 * DT), np.zeros((0, 3))), RuntimeError('publish failed'))
+    assert any(f'{(T0 + 7 * DT) * 1e-9:.3f} s failed: RuntimeError: publish failed' in line
+               for line in ros.warnings('joint_estimation_node'))

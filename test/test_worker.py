@@ -89,6 +89,24 @@ def test_an_item_that_raises_is_reported_and_the_worker_goes_on():
         worker.stop()
 
 
+def test_an_error_handler_that_raises_does_not_end_the_worker(capsys):
+    # as the joint node's did once, at shutdown, reading a field the item did not have
+    def process(item):
+        if item == 'bad':
+            raise RuntimeError('publish failed')
+    seen = []
+    worker = Worker(lambda item: (process(item), seen.append(item)), 'test', capacity=10,
+                    on_error=lambda item, error: item.header)
+    try:
+        for item in ('bad', 'a'):
+            worker.submit(item)
+        assert worker.wait_idle(5.0)
+        assert seen == ['a'] and (worker.processed, worker.failed) == (1, 1)
+        assert "has no attribute 'header'" in capsys.readouterr().err
+    finally:
+        worker.stop()
+
+
 def test_stop_ends_the_thread_and_clear_forgets_without_counting():
     release = threading.Event()
     worker = Worker(lambda item: release.wait(5.0), 'test', capacity=5)

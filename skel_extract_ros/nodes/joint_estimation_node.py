@@ -323,7 +323,10 @@ class JointEstimationNode(Node):
         self._publish_joints(header, positions, parents)
 
     def _live_failed(self, item, error) -> None:
-        self.log.warn('live_failed', f'live joints for the camera frame at {stamp_ns(item[0].header) * 1e-9:.3f} s '
+        """item: (header, points) of the camera frame whose fit or publish raised."""
+        if not self.context.ok():
+            return   # Ctrl-C closed the context under a frame in progress: its publish failed
+        self.log.warn('live_failed', f'live joints for the camera frame at {stamp_ns(item[0]) * 1e-9:.3f} s '
                                      f'failed: {type(error).__name__}: {error}')
 
     def _publish_joints(self, header, positions, parents) -> None:

@@ -15,6 +15,7 @@ from __future__ import annotations
 import collections
 import threading
 import time
+import traceback
 from typing import Callable
 
 
@@ -138,7 +139,10 @@ class Worker:
             except Exception as error:  # one bad item never ends the worker
                 ok = False
                 if self._on_error is not None:
-                    self._on_error(item, error)
+                    try:
+                        self._on_error(item, error)
+                    except Exception:  # nor a bad error handler: its traceback, then on
+                        traceback.print_exc()
             with self._wake:
                 self._busy = False
                 now = time.monotonic()
