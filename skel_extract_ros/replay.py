@@ -70,6 +70,7 @@ class Received:
     frame_id: str = ''
     counts: dict = field(default_factory=dict)            # topic -> messages
     accumulator: dict = field(default_factory=dict)       # its newest /diagnostics values (str)
+    registration: dict = field(default_factory=dict)      # the registration node's, the same
 
 
 def _ros_type(name: str):
@@ -181,6 +182,8 @@ class _Recorder:
                 for status in msg.status:
                     if status.name.endswith('/accumulator_node'):
                         r.accumulator = {kv.key: kv.value for kv in status.values}
+                    elif status.name.endswith('/registration_node'):
+                        r.registration = {kv.key: kv.value for kv in status.values}
             self.condition.notify_all()
 
     def wait_for(self, predicate, timeout: float, alive=None) -> bool:
@@ -275,11 +278,15 @@ def replay(input_path, out, rate: float = 1.0, topic: str | None = None, params_
         # once missed the first five registered frames that way).
         internal = {'rest_points': 3, 'registered_points': 3, 'filtered_points': 3, 'skeleton/structure': 2}
 
+        # ... and the graph as this node sees it is not enough: the accumulator once missed
+        # the first 3 registered frames, its reader not yet matched to the registration node's
+        # writer. The registration node says how many readers its outputs have matched.
         def connected():
             return (recorder.publisher.get_subscription_count() >= 1
                     and (recorder.info_publisher is None or recorder.info_publisher.get_subscription_count() >= 1)
                     and all(node.count_publishers(t) >= 1 for t, _, _ in OUTPUT_TOPICS)
-                    and all(node.count_subscribers(t) >= n for t, n in internal.items()))
+                    and all(node.count_subscribers(t) >= n for t, n in internal.items())
+                    and int(received.registration.get('outputs_matched', 0)) >= 3)
         if not recorder.wait_for(connected, 120.0, alive):
             raise ReplayError('the nodes did not come up within 120 s (see DIR/logs)')
 

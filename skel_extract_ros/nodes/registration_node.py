@@ -236,6 +236,9 @@ class RegistrationNode(Node):
             'failed': camera['failed'] + registration['failed'], 'waiting': registration['waiting'],
             'queue_size': self.queue_size, 'lossless': self.lossless,
             'registration_nice': self.registration_process.nice,
+            # readers matched to both outputs (DDS drops what a volatile writer sends before)
+            'outputs_matched': min(self.registered_pub.get_subscription_count(),
+                                   self.filtered_pub.get_subscription_count()),
             'rest_points': 0 if self.rest_pose is None else len(self.rest_pose.points)}
 
     def _failed(self, item, error) -> None:
