@@ -9,8 +9,8 @@ their stamps moving on by the bag's length each pass so time never goes back (ea
 starts with a jump from the last pose to the first). Every --sample-s seconds one line:
 the resident memory (VmRSS, MB) of each node with its child processes and their sum, and
 over the interval the rates of filtered_points, registered_points and skeleton/joints
-received (Hz). At the end,
-each node's memory growth from its first sample after the skeleton exists to its last.
+received (Hz). At the end, each node's memory growth from its first sample after the
+skeleton exists to its last.
 """
 from __future__ import annotations
 
@@ -32,7 +32,7 @@ OUTPUTS = ('filtered_points', 'registered_points', 'skeleton/joints')
 
 def rss_mb(pid: int) -> float:
     """Resident memory of a node with its child processes (the registration node runs
-    Alg. 1 in one, and multiprocessing adds its resource tracker), MB."""
+    Alg. 1 in one), MB."""
     total = 0.0
     try:
         for line in Path(f'/proc/{pid}/status').read_text().splitlines():

@@ -291,7 +291,7 @@ def replay(input_path, out, rate: float = 1.0, topic: str | None = None, params_
             raise ReplayError('the nodes did not come up within 120 s (see DIR/logs)')
 
         started = time.perf_counter()
-        first_stamp, previous, shift_ns = None, None, 0
+        first_stamp, previous, shift_ns, pass_ns = None, None, 0, 0
 
         def restamped(raw, msg_type):
             """(stamp ns, raw CDR) of a message with its stamp moved on by shift_ns."""
@@ -303,8 +303,9 @@ def replay(input_path, out, rate: float = 1.0, topic: str | None = None, params_
             return stamp, bytes(raw)
         bag_messages = (message for _pass in range(loops) for message in _raw_messages(input_path, topic))
         for index, (_time, raw) in enumerate(bag_messages):
-            if index and index % n_frames == 0:   # the next pass: one period after the last cloud
-                shift_ns = (index // n_frames) * (previous - shift_ns - first_stamp) * n_frames // (n_frames - 1)
+            if index == n_frames:   # the bag's length and one period: a pass moves the stamps on by it
+                pass_ns = (previous - first_stamp) * n_frames // (n_frames - 1)
+            shift_ns = (index // n_frames) * pass_ns
             stamp, raw = restamped(raw, cloud_type)
             first_stamp = stamp if first_stamp is None else first_stamp
             if not realtime and previous is not None and not recorder.wait_for(

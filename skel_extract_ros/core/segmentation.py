@@ -6,9 +6,9 @@ frame (organized clouds, the common case of a still depth camera):
 1. **Planes** (floor, walls, large table tops) are found by RANSAC (core/point_sets.py) on a
    subsample of the pixels that have not moved recently, refreshed every `plane_refresh`
    frames, and kept only if they extend at least `min_plane_extent` in both directions (a
-   torso is a plane too, but a small one). A pixel is on a plane when its depth along its own ray is
-   within `noise_sigmas` noise deviations of the plane's: at grazing angles (the floor near
-   the feet) a perpendicular distance would eat the feet.
+   torso is a plane too, but a small one). A pixel is on a plane when its depth along its
+   own ray is within `noise_sigmas` noise deviations of the plane's: at grazing angles (the
+   floor near the feet) a perpendicular distance would eat the feet.
 2. **Regions**: the remaining pixels are split at depth jumps into connected regions
    (scipy.ndimage.label), so the subject is apart from the wall behind it.
 3. **Motion** is the evidence: a pixel moved when its depth changed by more than
