@@ -83,14 +83,21 @@ _REGISTRATION = {
               '(Image on depth/image, 16UC1 mm or 32FC1 m, with CameraInfo on depth/camera_info)', _ANY),
     'input_reliability': ('QoS of the points subscription: best_effort (sensor data, matches every driver) '
                           'or reliable (lossless bag replay; needs a reliable publisher)', _ANY),
-    'queue_size': ('subject clouds waiting for the registration at most; older ones are skipped (and '
-                   'counted) when registration falls behind the camera (filtered_points still comes for '
-                   'every cloud)', (1, 100_000)),
+    'queue_size': ('subject clouds waiting for the registration at most once the first window is '
+                   'learned; older ones are skipped (and counted) when registration falls behind the camera '
+                   '(filtered_points still comes for every cloud)', (1, 100_000)),
+    'learning_queue_size': ('subject clouds waiting for the registration at most while the first window '
+                            'is learned (from the rest pose to the first skeleton/structure), registered in '
+                            'order: the window is then consecutive camera frames, as skel-extract run\'s, '
+                            'and close frames register 2-3 times faster than frames a second apart; when '
+                            'full, new clouds are skipped (counted). Set it to at least the accumulator\'s '
+                            'window_size', (1, 100_000)),
     'registration_niceness': ('added to the nice value of the child process that runs Alg. 1 once the '
-                              'joint node tracks a skeleton: when the cores are short, learning waits and the '
-                              'live path (segmentation, filtered_points, the joint fit) keeps the camera rate; '
-                              'while learning the first skeleton it runs at the node\'s priority; 0 = never '
-                              'lowered (nor with lossless)', (0, 19)),
+                              'first window is learned (skeleton/structure): when the cores are short, the '
+                              'joint node\'s Alg. 2 and then the live path (segmentation, filtered_points, the '
+                              'joint fit) go first and growing the skeleton waits; while learning the first '
+                              'window it runs at the node\'s priority; 0 = never lowered (nor with lossless)',
+                              (0, 19)),
     'lossless': ('never skip a cloud: when registration falls behind, segmentation waits for it and '
                  'so does the input (bag replay with input_reliability reliable; replay sets it)', _ANY),
 }

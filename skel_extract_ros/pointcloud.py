@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .core.point_sets import finite_rows
+
 # sensor_msgs/PointField datatypes
 INT8, UINT8, INT16, UINT16, INT32, UINT32, FLOAT32, FLOAT64 = range(1, 9)
 _FLOAT_TYPES = {FLOAT32: 'f4', FLOAT64: 'f8'}
@@ -72,7 +74,7 @@ def decode_xyz(msg, dtype=np.float32) -> np.ndarray:
 
 def finite_points(points: np.ndarray) -> np.ndarray:
     """Drop rows with any NaN or inf coordinate: (N, 3) -> (K, 3)."""
-    return points[np.isfinite(points).all(axis=1)]
+    return points[finite_rows(points)]
 
 
 def xyz_cloud_fields(point_step: int = 16):

@@ -179,7 +179,7 @@ def test_registration_reset_service_builds_a_new_rest_pose(ros, arm):
     assert stamps_of(rests)[-1] == arm.stamps_ns[3]
 
 
-def test_registration_runs_nicer_once_a_skeleton_is_tracked_and_survives_its_process_dying(ros, arm):
+def test_registration_runs_nicer_once_the_first_window_is_learned_and_survives_its_process_dying(ros, arm):
     node = small_registration(ros, registration_niceness=7)
     rests = ros.listen('rest_points', PointCloud2, LATCHED_QOS)
     registered = ros.listen('registered_points', PointCloud2, STREAM_QOS)
@@ -189,8 +189,9 @@ def test_registration_runs_nicer_once_a_skeleton_is_tracked_and_survives_its_pro
     pub.publish(cloud(arm.clouds[0], arm.stamps_ns[0]))
     ros.wait(lambda: len(registered) == 1, what='the first frame')
     assert node.registration_process.nice == base           # learning: full priority
-    # what the joint node latches once it has a model
-    ros.publisher('skeleton/description', String, LATCHED_QOS).publish(String(data='{}'))
+    # what the accumulator latches once its first window is learned (the joint node's
+    # skeleton/description does the same, for a joint node started without an accumulator)
+    ros.publisher('skeleton/structure', String, LATCHED_QOS).publish(String(data='{}'))
     ros.wait(lambda: node.registration_process.nice == min(base + 7, 19), what='the lowered priority')
     # the child dies (out of memory, killed): said, a new child, a new rest pose
     os.kill(node.registration_process.pid, signal.SIGKILL)
@@ -204,23 +205,38 @@ def test_registration_runs_nicer_once_a_skeleton_is_tracked_and_survives_its_pro
     assert ros.spinning()
 
 
-def test_registration_node_counts_skipped_clouds(ros, arm):
+def test_registration_node_registers_the_first_window_in_order_then_the_newest(ros, arm):
     # reliable delivery: with best effort a loaded machine loses clouds in DDS before the
     # node sees them, and only what reaches the node can be counted
-    node = small_registration(ros, input_reliability='reliable')
+    node = small_registration(ros, input_reliability='reliable', learning_queue_size=4)
     registered = ros.listen('registered_points', PointCloud2, STREAM_QOS)
     pub = ros.publisher('points', PointCloud2, QoSProfile(depth=50))
     ros.wait_matched(pub)
-    # a burst much faster than registration: queue_size 1 skips. 40 clouds (the 8 frames
-    # five times over, stamps going on), so that even a loaded machine cannot keep up
     step = int(arm.stamps_ns[1] - arm.stamps_ns[0])
-    for i in range(40):
-        pub.publish(cloud(arm.clouds[i % 8], int(arm.stamps_ns[0]) + i * step))
+
+    def burst(first, n):
+        stamps = [int(arm.stamps_ns[0]) + i * step for i in range(first, first + n)]
+        for i, stamp in enumerate(stamps, first):
+            pub.publish(cloud(arm.clouds[i % 8], stamp))
+        return stamps
+    # learning: a burst far faster than registration (the rest pose alone takes seconds);
+    # the first window's frames are kept in order and the newer ones skipped
+    first = burst(0, 20)
+    ros.wait(lambda: node.processed + node.skipped == 20, what='every cloud processed or skipped')
+    ros.wait(lambda: len(registered) == node.registrar.processed, what='every registered cloud published')
+    learned = stamps_of(registered)
+    assert len(learned) == 1 + 4                     # the rest pose's frame, then the queue
+    assert learned == sorted(learned) and learned[0] == first[0] and first[-1] not in learned
+    assert node.registrar.dropped > 0
+    ros.wait(lambda: any('registered in order, newer ones skipped' in m for m in ros.warnings('registration_node')),
+             what='the skip warning while learning')
+    # the first window is learned: the newest frames from now on (queue_size 1)
+    ros.publisher('skeleton/structure', String, LATCHED_QOS).publish(String(data='{}'))
+    ros.wait(lambda: node.registrar.keep == 'newest' and node.registrar.capacity == 1, what='queue_size')
+    second = burst(20, 20)
     ros.wait(lambda: node.processed + node.skipped == 40, what='every cloud processed or skipped')
-    assert node.skipped > 0
-    ros.wait(lambda: len(registered) == node.processed, what='every processed cloud published')
-    ros.wait(lambda: any('skipped so far' in m for m in ros.warnings('registration_node')),
-             what='the skip warning')
+    ros.wait(lambda: second[-1] in stamps_of(registered), what='the newest cloud registered')
+    assert stamps_of(registered) == sorted(stamps_of(registered))     # in order, throughout
 
 
 def _publish_two_bone(ros, rest, frames, start=0):

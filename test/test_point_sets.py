@@ -4,7 +4,7 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from skel_extract_ros.core.point_sets import ransac_plane, statistical_inliers, voxel_centroids
+from skel_extract_ros.core.point_sets import finite_rows, ransac_plane, statistical_inliers, voxel_centroids
 
 
 def _surface_with_flying_pixels(seed=0, n=5000, flying=60):
@@ -55,3 +55,16 @@ def test_ransac_plane_finds_the_floor_as_open3d_does():
     _, theirs = _cloud(points).segment_plane(0.02, 3, 300)
     assert abs(len(inliers) - len(theirs)) <= 0.01 * len(theirs)
     assert ransac_plane(points[:2], 0.02, 10, np.random.default_rng(0)) is None
+
+
+@pytest.mark.parametrize('dtype', [np.float32, np.float64])
+def test_finite_rows_is_isfinite_all(dtype):
+    rng = np.random.default_rng(3)
+    points = rng.normal(size=(3000, 3)).astype(dtype)
+    bad = rng.integers(0, 3000, size=(300, 2))
+    points[bad[:, 0], bad[:, 1] % 3] = rng.choice([np.nan, np.inf, -np.inf], size=300)
+    points[7] = [np.inf, -np.inf, 1.0]          # inf - inf: the sum is NaN, still not finite
+    expected = np.isfinite(points).all(axis=1)
+    assert not expected.all() and expected.any()
+    np.testing.assert_array_equal(finite_rows(points), expected)
+    assert finite_rows(points[:0]).shape == (0,)

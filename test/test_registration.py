@@ -38,6 +38,9 @@ def test_rotation_closed_form_is_the_so3_maximiser():
         assert (np.einsum('nij,nji->n', other, H) <= best + 1e-9).all()
     # a reflection-favouring H still gives a proper rotation (det correction)
     assert np.linalg.det(rotations_from_h(-np.eye(3)[None]))[0] == pytest.approx(1.0)
+    # one (3, 3) matrix takes its own path: the batched result, det correction included
+    for single in [*H[:20], -np.eye(3), np.diag([1.0, 1.0, -1.0])]:
+        np.testing.assert_allclose(rotations_from_h(single), rotations_from_h(single[None])[0], atol=1e-12)
 
 
 def test_kabsch_special_case_recovers_a_known_rotation():

@@ -83,7 +83,7 @@ def test_live_at_camera_rate_on_a_room_bag(tmp_path):
     # frame when it falls behind, and that share went from 78 % to 59 % with the load
     assert joints_hz >= 10.0 and with_joints > 0, done.stdout
     registration_log = (tmp_path / 'out' / 'logs' / 'registration_node.log').read_text()
-    assert 'the skeleton is tracked: registration runs at nice' in registration_log
+    assert 'the skeleton is learned: registration runs at nice' in registration_log
     for name in ('registration_node', 'accumulator_node', 'joint_estimation_node'):
         assert 'Traceback' not in (tmp_path / 'out' / 'logs' / f'{name}.log').read_text()
 

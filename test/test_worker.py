@@ -44,6 +44,34 @@ def test_a_deeper_queue_keeps_order_and_drops_the_oldest():
         worker.stop()
 
 
+def test_keeping_the_oldest_gives_a_consecutive_run_and_reconfiguring_trims_the_queue():
+    release, started, seen = threading.Event(), threading.Event(), []
+
+    def process(item):
+        started.set()
+        release.wait(5.0)
+        seen.append(item)
+
+    worker = Worker(process, 'test', capacity=3, keep='oldest')
+    try:
+        worker.submit(0)
+        assert started.wait(5.0)              # 0 is running: 1, 2, 3 wait, 4 and 5 are refused
+        assert [worker.submit(i) for i in range(1, 6)] == [0, 0, 0, 1, 1]
+        assert worker.stats()['waiting'] == 3 and worker.dropped == 2
+        # learning done: the newest only from now on; the waiting run shrinks to its newest
+        assert worker.configure(1, keep='newest') == 2
+        assert worker.submit(6) == 1          # replaces 3
+        release.set()
+        assert worker.wait_idle(5.0)
+        assert seen == [0, 6] and worker.dropped == 5
+        with pytest.raises(ValueError):
+            worker.configure(2, keep='middle')
+        with pytest.raises(ValueError):
+            worker.configure(0)
+    finally:
+        worker.stop()
+
+
 def test_a_blocking_submit_waits_for_room_and_loses_nothing():
     """Back-pressure (the registration node's lossless mode): a producer faster than the
     worker is slowed down to it, nothing is dropped and the order is kept."""
@@ -119,3 +147,18 @@ def test_stop_ends_the_thread_and_clear_forgets_without_counting():
     assert not worker._thread.is_alive()
     with pytest.raises(ValueError, match='capacity'):
         Worker(lambda item: None, 'test', capacity=0)
+
+
+def test_the_pairer_forgets_frames_the_registration_has_passed():
+    from skel_extract_ros.nodes.common import StampPairer
+    pairer = StampPairer(capacity=100)
+    for stamp in range(10):                       # filtered frames of every camera frame
+        assert pairer.add(1, stamp, f'filtered {stamp}') is None
+    assert pairer.add(0, 3, 'registered 3') == ('registered 3', 'filtered 3')
+    # registration goes in stamp order: 0-2 will never be registered and are gone
+    assert list(pairer._sides[1]) == [4, 5, 6, 7, 8, 9]
+    assert pairer.add(0, 7, 'registered 7') == ('registered 7', 'filtered 7')
+    assert pairer.add(1, 12, 'filtered 12') is None and pairer.add(0, 12, 'r') == ('r', 'filtered 12')
+    assert list(pairer._sides[1]) == []           # 4-6, 8-11 dropped when 7 and 12 came
+    # either side may come first (DDS does not order topics): a registered frame waits
+    assert pairer.add(0, 13, 'r13') is None and pairer.add(1, 13, 'f13') == ('r13', 'f13')

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .point_sets import ransac_plane, statistical_inliers, voxel_centroids
+from .point_sets import finite_rows, ransac_plane, statistical_inliers, voxel_centroids
 
 
 class PreprocessError(ValueError):
@@ -62,7 +62,7 @@ class Preprocessor:
         points = np.asarray(points)
         if points.ndim != 2 or points.shape[1] != 3:
             raise PreprocessError(f'points must be an (N, 3) array, got shape {points.shape}')
-        points = points[np.isfinite(points).all(axis=1)].astype(np.float64, copy=False)
+        points = points[finite_rows(points)].astype(np.float64, copy=False)
         if len(points) > p.max_input_points:
             points = points[self._rng.choice(len(points), p.max_input_points, replace=False)]
         if p.crop_min is not None or p.crop_max is not None:

@@ -107,6 +107,7 @@ from scipy.spatial import cKDTree
 
 from .deformation_graph import DeformationGraph
 from .gmm import GMMStatistics, gmm_posteriors
+from .point_sets import finite_rows
 from .recapture import find_recaptures, lost_parts, rigid_fit
 from .rigid import rotations_from_h
 
@@ -629,7 +630,7 @@ class NonRigidRegistration:
         observed = np.asarray(observed, dtype=np.float64)
         if observed.ndim != 2 or observed.shape[1] != 3:
             raise ValueError(f'observed points must be (N, 3), got {observed.shape}')
-        observed = np.ascontiguousarray(observed[np.isfinite(observed).all(axis=1)])
+        observed = np.ascontiguousarray(observed[finite_rows(observed)])
         if len(observed) < p.min_points:
             return FrameResult(self.points.copy(), STATUS_EMPTY, float('nan'), 0, 0.0)
 

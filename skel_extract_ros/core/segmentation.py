@@ -42,7 +42,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from .point_sets import ransac_plane, voxel_centroids
+from .point_sets import finite_rows, ransac_plane, voxel_centroids
 
 STATUS_SUBJECT = 'subject'
 STATUS_NOBODY = 'nobody'
@@ -179,7 +179,7 @@ class SubjectSegmenter:
         points = np.asarray(points)
         if points.dtype not in (np.float32, np.float64):
             points = points.astype(np.float64)
-        valid = np.isfinite(points).all(axis=1)
+        valid = finite_rows(points)
         if not self.params.enabled:
             return Segmentation(valid, STATUS_OFF, int(valid.sum()))
         width = len(points) if width is None else int(width)

@@ -193,14 +193,25 @@ class StampPairer:
     """Pairs two streams by exact header stamp (ns). The registration node publishes the
     filtered and the registered cloud of a frame on two topics, and DDS does not order
     messages across topics, so either may come first; unmatched items are kept for the
-    last `capacity` stamps of each side. Not thread-safe: call from one callback group."""
+    last `capacity` stamps of each side. Side 0 (registered frames) comes in stamp order
+    (registration takes frames in order): an item of side 1 older than the newest of side 0
+    will never be matched and is dropped at once, so side 1 holds only the frames the
+    registration may still answer (while the first window is learned it registers
+    consecutive frames, seconds behind the camera). Not thread-safe: call from one
+    callback group."""
 
-    def __init__(self, capacity: int = 200):
+    def __init__(self, capacity: int = 1800):
+        # a minute at 30 Hz: how far the first window's registration may fall behind (side 1
+        # holds about that lag's frames while it learns, a few once it takes the newest)
         self.capacity = capacity
         self._sides = (collections.OrderedDict(), collections.OrderedDict())
 
     def add(self, side: int, stamp: int, value):
         """Offer `value` on side 0 or 1; returns (value_0, value_1) once both are in."""
+        if side == 0:   # (not assuming arrival order: stamps go back when a bag loops)
+            unmatched = self._sides[1]
+            for older in [s for s in unmatched if s < stamp]:
+                del unmatched[older]
         other = self._sides[1 - side].pop(stamp, None)
         if other is not None:
             return (value, other) if side == 0 else (other, value)

@@ -45,6 +45,7 @@ from visualization_msgs.msg import MarkerArray
 
 from ..core.joints import JointEstimation, JointParams
 from ..core.live import ArticulatedTracker, LiveJointTracker
+from ..core.point_sets import finite_rows
 from ..core.rigid import fit_rigid_segments
 from ..core.skeleton_model import SkeletonModel
 from ..core.structure import SkeletalStructure
@@ -306,7 +307,7 @@ class JointEstimationNode(Node):
                     self._seed = seed
         if seed_stamp == stamp:
             positions, outcome = tracker.joints_of(*seed[1:]), 'registered'
-        elif np.isfinite(observed).all(axis=1).sum() < 10:
+        elif finite_rows(observed).sum() < 10:
             self.log.warn('live_empty', f'camera frame at {stamp * 1e-9:.3f} s has {len(observed)} subject '
                                         'points: no live joints (subject out of view?)')
             self.live_fits['too_few_points'] += 1

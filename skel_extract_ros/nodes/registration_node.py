@@ -6,8 +6,10 @@ Subscribes  points            sensor_msgs/PointCloud2  sensor-data QoS (best eff
             depth/image       sensor_msgs/Image (16UC1 mm, 32FC1 m) and
             depth/camera_info sensor_msgs/CameraInfo, with input:=depth_image: back-projected
                               into the same organized cloud
-            skeleton/description std_msgs/String (transient local): the joint node tracks a
-                              skeleton; from then on Alg. 1 runs registration_niceness nicer
+            skeleton/structure, skeleton/description std_msgs/String (transient local): the
+                              first window is learned (the joint node's Alg. 2 comes next)
+                              or a skeleton is tracked; from then on Alg. 1 runs
+                              registration_niceness nicer
 Publishes   registered_points PointCloud2 (M points, fixed order, input header; ok frames only)
             filtered_points   PointCloud2 (the subject, preprocessed, input header; every decodable cloud)
             rest_points       PointCloud2 (float64, transient local; the rest pose Q, header of its cloud)
@@ -21,15 +23,20 @@ at camera rate whatever registration costs:
   (core/segmentation.py: only the subject, the connected region that moves, is kept),
   preprocesses it and publishes it on filtered_points at once: the joint node fits the
   skeleton to it;
-- the *registration stage* registers the subject clouds it is given (Alg. 1), holding at
-  most `queue_size` waiting ones: when it falls behind, the oldest waiting cloud is skipped,
-  counted and reported, so it always works on recent frames. With `lossless` nothing is
-  skipped: the camera stage waits for room (back-pressure; for bag replay with reliable
-  input). The rest pose waits until the subject is wholly in view. Alg. 1 itself runs in a
-  child process (nodes/registration_process.py): it never takes the GIL from the camera
-  stage, and once the joint node tracks a skeleton (skeleton/description) it runs
-  `registration_niceness` nicer, so when the cores are short learning waits, not the live
-  path. A new rest pose (reset, stamps going back) starts a new child at full priority.
+- the *registration stage* registers the subject clouds it is given (Alg. 1). While the
+  first window is learned (from the rest pose to the first skeleton/structure) it takes
+  them in order, holding up to `learning_queue_size` (new ones are skipped when full): the
+  window is consecutive camera frames, as `skel-extract run`'s, and frames 33 ms apart
+  register in a third of the time of frames a second apart (fewer EM iterations). After
+  that it holds at most `queue_size` waiting ones: when it falls behind, the oldest
+  waiting cloud is skipped, counted and reported, so it always works on recent frames.
+  With `lossless` nothing is skipped: the camera stage waits for room (back-pressure; for
+  bag replay with reliable input). The rest pose waits until the subject is wholly in
+  view. Alg. 1 itself runs in a child process (nodes/registration_process.py): it never
+  takes the GIL from the camera stage, and once the first window is learned
+  (skeleton/structure) it runs `registration_niceness` nicer, so when the cores are short
+  the joint node's Alg. 2 and then the live path go first, and growing the skeleton waits.
+  A new rest pose (reset, stamps going back) starts a new child at full priority.
 """
 from __future__ import annotations
 
@@ -80,6 +87,8 @@ class RegistrationNode(Node):
         values['preprocess'] = declare_dataclass(self, SECTION, PreprocessParams, 'preprocess.')
         values['segmentation'] = declare_dataclass(self, SECTION, SegmentationParams, 'segmentation.')
         self.queue_size = declare(self, SECTION, 'queue_size', NODE_ONLY[SECTION]['queue_size'])
+        self.learning_queue_size = declare(self, SECTION, 'learning_queue_size',
+                                           NODE_ONLY[SECTION]['learning_queue_size'])
         self.lossless = declare(self, SECTION, 'lossless', NODE_ONLY[SECTION]['lossless'])
         reliability = declare(self, SECTION, 'input_reliability', NODE_ONLY[SECTION]['input_reliability'])
         if reliability not in ('best_effort', 'reliable'):
@@ -100,6 +109,8 @@ class RegistrationNode(Node):
         self.rest_pub = self.create_publisher(PointCloud2, 'rest_points', LATCHED_QOS)
         self.create_service(Trigger, '~/reset', self._on_reset)
         self.create_service(Trigger, '~/reset_background', self._on_reset_background)
+        # whichever comes first (a joint node started on its own publishes only the description)
+        self.create_subscription(String, 'skeleton/structure', self._on_skeleton, LATCHED_QOS)
         self.create_subscription(String, 'skeleton/description', self._on_skeleton, LATCHED_QOS)
         # set by the services, acted on by the camera stage before its next cloud
         self._background_reset_requested = False
@@ -116,6 +127,7 @@ class RegistrationNode(Node):
         self.camera = Worker(self._observe, 'camera', capacity=1, on_error=self._failed)
         self.registrar = Worker(self._register, 'registration', capacity=self.queue_size,
                                 on_error=self._registration_failed)
+        self._learn()
         self.last_status = ''          # what happened to the newest cloud, for /diagnostics
         self._reported_skips = 0
         self.diagnostics = NodeDiagnostics(self, self._diagnostics)
@@ -145,11 +157,16 @@ class RegistrationNode(Node):
 
     def _warn_skipped(self) -> None:
         camera, registration = self.camera.stats(), self.registrar.stats()
+        if self.registrar.keep == 'oldest':
+            policy = (f'learning_queue_size {self.registrar.capacity}; median '
+                      f'{registration["latency_ms_median"]:.0f} ms per frame): the first window\'s '
+                      'frames are registered in order, newer ones skipped until it is learned')
+        else:
+            policy = (f'queue_size {self.registrar.capacity}; median {registration["latency_ms_median"]:.0f} '
+                      'ms per frame): the newest frames are registered')
         self.log.warn('skipped', f'{camera["dropped"]} cloud(s) skipped so far before segmentation '
                                  f'(median {camera["latency_ms_median"]:.0f} ms per cloud) and '
-                                 f'{registration["dropped"]} skipped for registration (queue_size '
-                                 f'{self.queue_size}; median {registration["latency_ms_median"]:.0f} ms '
-                                 'per frame): the newest frames are registered')
+                                 f'{registration["dropped"]} skipped for registration ({policy}')
 
     @property
     def skipped(self) -> int:
@@ -163,12 +180,26 @@ class RegistrationNode(Node):
         return self._done
 
     def _on_skeleton(self, _msg: String) -> None:
-        """The joint node has a skeleton: from now on the live path comes first (not with
+        """The first window is learned (skeleton/structure) or a skeleton tracked: from now on
+        Alg. 2 and the live path come first; registration only grows the skeleton. Measured:
+        at full priority beside it, Alg. 2 on the first 60-frame window took 23 s (not with
         lossless: there every frame waits for its registration, and a nicer one only slows all)."""
-        if not self.lossless and not self.registration_process.lowered:
+        if self.lossless:
+            return
+        if self.registrar.keep == 'oldest':
+            # the backlog of the window's frames is not needed for growing the skeleton
+            self.registrar.configure(self.queue_size, keep='newest')
+        if not self.registration_process.lowered:
             self.registration_process.lower_priority()
-            self.get_logger().info(f'the skeleton is tracked: registration runs at nice '
-                                   f'{self.registration_process.nice} from now on')
+            self.get_logger().info(f'the skeleton is learned: registration runs at nice '
+                                   f'{self.registration_process.nice} and takes the newest frames '
+                                   'from now on')
+
+    def _learn(self) -> None:
+        """Learning the first window: consecutive frames, in order (not with lossless, where
+        every frame is registered anyway, with back-pressure)."""
+        if not self.lossless:
+            self.registrar.configure(self.learning_queue_size, keep='oldest')
 
     def _on_reset(self, _request, response):
         self._reset_requested = True
@@ -199,6 +230,7 @@ class RegistrationNode(Node):
         """A new rest pose from the next good cloud (the registration stage sees the epoch)."""
         self._start_camera()
         self.epoch += 1
+        self._learn()
 
     def _observe(self, item) -> None:
         msg, info = item
@@ -234,7 +266,7 @@ class RegistrationNode(Node):
             'clouds_in': camera['submitted'], 'processed': self.processed, 'skipped': skipped,
             'skipped_for_registration': registration['dropped'],
             'failed': camera['failed'] + registration['failed'], 'waiting': registration['waiting'],
-            'queue_size': self.queue_size, 'lossless': self.lossless,
+            'queue_size': self.registrar.capacity, 'lossless': self.lossless,
             'registration_nice': self.registration_process.nice,
             # readers matched to both outputs (DDS drops what a volatile writer sends before)
             'outputs_matched': min(self.registered_pub.get_subscription_count(),

@@ -1,9 +1,10 @@
 """One worker idiom for the nodes: a background thread that processes submitted items in
 order, holding at most `capacity` waiting ones; when full, the oldest waiting item is
-dropped and counted. capacity 1 is "latest frame only" (live fits) and "single flight,
-newest wins" (a long job such as Alg. 2: while it runs, a newer request replaces the
-waiting one). No rclpy: the callbacks stay cheap (submit never blocks) and the executor
-never waits for the work.
+dropped and counted (keep='newest'), or the new one is (keep='oldest': a run of
+consecutive items, e.g. the frames of a learning window). capacity 1 is "latest frame
+only" (live fits) and "single flight, newest wins" (a long job such as Alg. 2: while it
+runs, a newer request replaces the waiting one). No rclpy: the callbacks stay cheap
+(submit never blocks) and the executor never waits for the work.
 
     >>> worker = Worker(fit_and_publish, name='live', capacity=1)
     >>> worker.submit(frame)        # from a subscription callback
@@ -48,36 +49,54 @@ class Worker:
     worker thread) when process raises, and the worker goes on with the next item."""
 
     def __init__(self, process: Callable, name: str, capacity: int = 1,
-                 on_error: Callable | None = None, history: int = 1000):
-        if capacity < 1:
-            raise ValueError(f'capacity must be >= 1, got {capacity}')
+                 on_error: Callable | None = None, history: int = 1000, keep: str = 'newest'):
         self._process, self._on_error = process, on_error
-        self.capacity = int(capacity)
         self._waiting = collections.deque()
         self._wake = threading.Condition()
         self._stopping = False
         self._busy = False
         self.submitted = self.processed = self.dropped = self.failed = 0
+        self.configure(capacity, keep)
         self._latency_s = collections.deque(maxlen=history)   # submit -> processed, seconds
         self.rate_in, self.rate_out = RateMeter(), RateMeter()
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._thread.start()
 
+    def configure(self, capacity: int, keep: str = 'newest') -> int:
+        """Change the capacity and what a full queue keeps ('newest': the oldest waiting
+        item is dropped; 'oldest': the new one is); returns how many waiting items the new
+        capacity dropped (counted)."""
+        if capacity < 1:
+            raise ValueError(f'capacity must be >= 1, got {capacity}')
+        if keep not in ('newest', 'oldest'):
+            raise ValueError(f"keep must be 'newest' or 'oldest', got {keep!r}")
+        with self._wake:
+            self.capacity, self.keep = int(capacity), keep
+            return self._trim()
+
+    def _trim(self) -> int:
+        """Drop what exceeds the capacity, by the keep policy (the caller holds the lock)."""
+        dropped = 0
+        while len(self._waiting) > self.capacity:
+            if self.keep == 'newest':
+                self._waiting.popleft()
+            else:
+                self._waiting.pop()
+            dropped += 1
+        self.dropped += dropped
+        return dropped
+
     def submit(self, item, block: bool = False) -> int:
-        """Queue `item`; returns how many waiting items this dropped (0 or more). block:
-        wait for room instead of dropping (back-pressure, for lossless processing; never
-        from an executor callback)."""
+        """Queue `item`; returns how many items this dropped (0 or more; with keep='oldest'
+        and a full queue, 1: the item itself). block: wait for room instead of dropping
+        (back-pressure, for lossless processing; never from an executor callback)."""
         with self._wake:
             while block and len(self._waiting) >= self.capacity and not self._stopping:
                 self._wake.wait()
             self._waiting.append((time.monotonic(), item))
             self.submitted += 1
             self.rate_in.tick()
-            dropped = 0
-            while len(self._waiting) > self.capacity:
-                self._waiting.popleft()
-                dropped += 1
-            self.dropped += dropped
+            dropped = self._trim()
             self._wake.notify_all()
         return dropped
 
