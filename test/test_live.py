@@ -142,3 +142,33 @@ def test_articulated_fit_rejects_what_it_cannot_fit(learned):
         tracker.track(np.zeros((50, 2)))
     with pytest.raises(ValueError, match='iterations'):
         ArticulatedTracker(model, iterations=0)
+
+
+def test_the_bone_blocks_never_raise_the_energy(learned):
+    """The live fit's M-step (Eq. 13-15, bone after bone, each an exact block of the frame's
+    energy): from a disturbed pose the energy falls at every sweep, to a small fraction.
+    (All bones at once, translations by one linear solve and rotations through a majoriser,
+    was measured against it: 25 735 -> 117 after 6 sweeps on this pose, bone by bone 0.26.)"""
+    model, registered, _, _ = learned
+    tracker = ArticulatedTracker(model, max_points=len(model.rest_points))
+    rotations, translations = LiveJointTracker(model).fit(registered[5])
+    anchors = (rotations.copy(), translations.copy())
+    targets = tracker.deform(*LiveJointTracker(model).fit(registered[8]))
+    point_weights = np.random.default_rng(0).uniform(0.5, 2.0, size=len(targets)) * 1e4
+    params, alpha = tracker.params, tracker._alpha
+    children = np.flatnonzero(model.parents >= 0)
+    parents = np.asarray(model.parents)[children]
+    centres = np.asarray(model.rest_joints)[children]
+
+    def energy(r, t):
+        data = np.sum(point_weights * np.sum((targets - tracker.deform(r, t)) ** 2, axis=1))
+        gap = (np.einsum('eij,ej->ei', r[children], centres) + t[children]
+               - np.einsum('eij,ej->ei', r[parents], centres) - t[parents])
+        small = np.sum((t - anchors[1]) ** 2) + np.sum((r - anchors[0]) ** 2)
+        return data + alpha * np.sum(gap ** 2) + params.gamma * small
+    energies = [energy(rotations, translations)]
+    for _ in range(6):
+        tracker.sweep(targets, point_weights, rotations, translations, anchors)
+        energies.append(energy(rotations, translations))
+    assert all(b <= a * (1 + 1e-9) for a, b in zip(energies, energies[1:])), energies
+    assert energies[-1] < 1e-3 * energies[0], energies

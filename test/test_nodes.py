@@ -225,8 +225,11 @@ def test_registration_node_registers_the_first_window_in_order_then_the_newest(r
     ros.wait(lambda: node.processed + node.skipped == 20, what='every cloud processed or skipped')
     ros.wait(lambda: len(registered) == node.registrar.processed, what='every registered cloud published')
     learned = stamps_of(registered)
-    assert len(learned) == 1 + 4                     # the rest pose's frame, then the queue
-    assert learned == sorted(learned) and learned[0] == first[0] and first[-1] not in learned
+    # the rest pose's frame, then the 4 queued (the camera stage itself keeps only the newest
+    # cloud, so under load it may pass on the 2nd before the 1st): in order, not the newest
+    assert node.camera.processed > 1 + 4            # more than the registration may keep
+    assert len(learned) == 1 + 4
+    assert learned == sorted(learned) and first[-1] not in learned
     assert node.registrar.dropped > 0
     ros.wait(lambda: any('registered in order, newer ones skipped' in m for m in ros.warnings('registration_node')),
              what='the skip warning while learning')

@@ -77,11 +77,15 @@ def test_live_at_camera_rate_on_a_room_bag(tmp_path):
     assert tracking, done.stdout
     seconds, with_joints, _published, joints_hz, camera_hz, _filtered = map(float, tracking.groups())
     assert seconds > 10.0 and abs(camera_hz - 30.0) < 1.5        # tracked for most of the run, at 30 Hz
-    # joints at more than a third of the camera rate (20 Hz on a quiet run of this machine,
-    # 11.9 Hz during a fresh-clone test run; the 5.6 Hz before the live fit). The share
-    # of segmented frames that get joints is not asserted: the live fit keeps only the newest
-    # frame when it falls behind, and that share went from 78 % to 59 % with the load
-    assert joints_hz >= 10.0 and with_joints > 0, done.stdout
+    # joints at a quarter of the camera rate at least, an order of magnitude above the
+    # registration's rate once tracking (well under 1 Hz): the live path does not wait for it.
+    # The live fit's cost grows with the bones: 14 Hz on a quiet run of this machine with the
+    # 10-joint skeleton that a window of 10 consecutive frames gives this arm (as `run`
+    # does); 20 Hz (11.9 Hz in a fresh-clone test run) with the 4 joints of the window spread
+    # over 10 s that registering the newest frames gave before; the 5.6 Hz before the
+    # live fit. The share of segmented frames that get joints is not asserted: the live fit
+    # keeps only the newest frame when it falls behind, and that share moves with the load
+    assert joints_hz >= 7.5 and with_joints > 0, done.stdout
     registration_log = (tmp_path / 'out' / 'logs' / 'registration_node.log').read_text()
     assert 'the skeleton is learned: registration runs at nice' in registration_log
     for name in ('registration_node', 'accumulator_node', 'joint_estimation_node'):

@@ -71,7 +71,8 @@ SECTION = 'registration_node'
 class _SubjectFrame:
     """What the camera stage hands to the registration stage: the epoch of the rest pose it
     belongs to, the cloud's header, the preprocessed subject (N, 3) m and the segmentation
-    result (for the rest pose's wait for a whole subject; it counts the cloud's valid points)."""
+    result without its mask (for the rest pose's wait for a whole subject; it counts the
+    cloud's valid points)."""
 
     epoch: int
     header: object
@@ -189,6 +190,7 @@ class RegistrationNode(Node):
         if self.registrar.keep == 'oldest':
             # the backlog of the window's frames is not needed for growing the skeleton
             self.registrar.configure(self.queue_size, keep='newest')
+            release_freed_memory()
         if not self.registration_process.lowered:
             self.registration_process.lower_priority()
             self.get_logger().info(f'the skeleton is learned: registration runs at nice '
@@ -345,7 +347,8 @@ class RegistrationNode(Node):
                                 throttle_duration_sec=1.0)
         observed = self.preprocessor(raw[segmentation.mask])
         self.filtered_pub.publish(cloud_message(observed, msg.header))
-        frame = _SubjectFrame(self.epoch, msg.header, observed, segmentation)
+        # without its per-pixel mask: up to learning_queue_size frames wait for registration
+        frame = _SubjectFrame(self.epoch, msg.header, observed, segmentation.summary())
         if self.registrar.submit(frame, block=self.lossless):
             self._warn_skipped()
         return True
