@@ -67,6 +67,7 @@ class Received:
     rest: np.ndarray | None = None
     structure: dict | None = None
     description: dict | None = None
+    description_at: float | None = None                   # when the first one came: tracking from then
     frame_id: str = ''
     counts: dict = field(default_factory=dict)            # topic -> messages
     accumulator: dict = field(default_factory=dict)       # its newest /diagnostics values (str)
@@ -175,6 +176,8 @@ class _Recorder:
                 r.structure = json.loads(msg.data)
             elif topic == 'skeleton/description':
                 r.description = json.loads(msg.data)
+                if r.description_at is None:
+                    r.description_at = now
             elif topic == 'skeleton/joints':
                 stamp = stamp_ns(msg.header)
                 r.joints[stamp], r.joints_at[stamp] = pose_array_positions(msg), now
@@ -434,12 +437,14 @@ def _write_files(received: Received, out: Path) -> dict:
 def _camera_delivery(received: Received, streamed_s: float) -> dict:
     """What a camera user got: frames published, frames with joints (and their rate over the
     streaming time), frames without, and the latency cloud published -> joints received,
-    median / p95 in ms, over the frames that got joints live (the frames of the structure's
-    window, which Alg. 2 answers seconds later, are counted, not timed)."""
+    median / p95 in ms, over the live frames: those published once the skeleton existed (the
+    first skeleton/description received). The frames before it that got joints (the
+    structure's window and the learning window's other registered frames, which Alg. 2 and
+    the registered pose answer seconds later) are counted, not timed."""
     published = received.published_at
     with_joints = [s for s in published if s in received.joints_at]
-    window = set(received.structure['window_stamps_ns']) if received.structure else set()
-    live = [s for s in with_joints if s not in window]
+    tracking_from = received.description_at
+    live = ([s for s in with_joints if published[s] >= tracking_from] if tracking_from is not None else [])
     latency = [1000 * (received.joints_at[s] - published[s]) for s in live]
     return {'published': len(published), 'with_joints': len(with_joints),
             'without_joints': len(published) - len(with_joints),
@@ -447,15 +452,16 @@ def _camera_delivery(received: Received, streamed_s: float) -> dict:
             'live_frames': len(live),
             'latency_ms_median': float(np.median(latency)) if latency else float('nan'),
             'latency_ms_p95': float(np.percentile(latency, 95)) if latency else float('nan'),
-            'tracking': _tracking_delivery(received, min(live)) if live else None}
+            'tracking': _tracking_delivery(received, tracking_from) if live else None}
 
 
-def _tracking_delivery(received: Received, first_live: int) -> dict:
-    """From the first camera frame with live joints (stamp ns) to the last one published:
-    frames published, passed on by the camera stage (filtered_points), with joints, and
-    the joints rate over that time (Hz), the rate a user gets once the skeleton is tracked."""
-    published = {s: t for s, t in received.published_at.items() if s >= first_live}
-    span_s = max(published.values()) - published[first_live]
+def _tracking_delivery(received: Received, tracking_from: float) -> dict:
+    """From the first camera frame published once the skeleton existed (perf_counter s of
+    the first skeleton/description) to the last one published: frames published, passed on
+    by the camera stage (filtered_points), with joints, and the joints rate over that time
+    (Hz), the rate a user gets once the skeleton is tracked."""
+    published = {s: t for s, t in received.published_at.items() if t >= tracking_from}
+    span_s = max(published.values()) - min(published.values())
     with_joints = sum(s in received.joints_at for s in published)
     return {'published': len(published), 'filtered': sum(s in received.filtered_at for s in published),
             'with_joints': with_joints, 'seconds': span_s,

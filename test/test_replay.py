@@ -60,8 +60,8 @@ def test_replay_sample_bag_records_every_topic_and_matches_run(tmp_path, sample_
 
 def test_live_at_camera_rate_on_a_room_bag(tmp_path):
     """The installed nodes on defaults, a 30 Hz best-effort depth camera (a 3 s room bag of
-    depth images played ten times over, the stamps moving on), a short learning window so
-    that most of the 30 s is tracking: joints come, for the frames the segmentation passes
+    depth images played 15 times over, the stamps moving on), a short learning window so
+    that most of the 45 s is tracking: joints come, for the frames the segmentation passes
     on, at a rate a person-following robot can use. Depth images, as a live camera is best
     run (input:=depth_image): 320x240 clouds of 1.2 MB each lose about a quarter of the
     frames in DDS on a loaded 2-core machine before any node sees them."""
@@ -69,23 +69,25 @@ def test_live_at_camera_rate_on_a_room_bag(tmp_path):
     run_cli('simulate', '--subject', 'arm', '--frames', '90', '--scene', 'room', '--depth-image', '--out', bag)
     params = tmp_path / 'window.yaml'
     params.write_text('accumulator_node:\n  ros__parameters:\n    window_size: 10\n')
-    done = run_cli_private_domain(51, 'replay', bag, '--out', tmp_path / 'out', '--realtime', '--loop', '10',
+    done = run_cli_private_domain(51, 'replay', bag, '--out', tmp_path / 'out', '--realtime', '--loop', '15',
                                   '--params', params)
     assert done.returncode == 0, done.stderr[-2000:]
     tracking = re.search(r'once tracking \(([\d.]+) s\): (\d+) of (\d+) camera frames got joints '
                          r'\(([\d.]+) Hz of ([\d.]+) Hz\), (\d+) passed the segmentation', done.stdout)
     assert tracking, done.stdout
     seconds, with_joints, _published, joints_hz, camera_hz, _filtered = map(float, tracking.groups())
-    assert seconds > 10.0 and abs(camera_hz - 30.0) < 1.5        # tracked for most of the run, at 30 Hz
-    # joints at a quarter of the camera rate at least, an order of magnitude above the
+    # tracking counts from the first skeleton/description: learning (rest pose, 10 frames
+    # registered in order, Alg. 1 and 2) took 13-18 s on this machine with one or both cores
+    # kept busy by another process; a fresh-clone CI run was slower still
+    assert seconds > 10.0 and abs(camera_hz - 30.0) < 1.5
+    # joints for a third of the camera frames at least, two orders of magnitude above the
     # registration's rate once tracking (well under 1 Hz): the live path does not wait for it.
-    # The live fit's cost grows with the bones: 14 Hz on a quiet run of this machine with the
-    # 10-joint skeleton that a window of 10 consecutive frames gives this arm (as `run`
-    # does); 20 Hz (11.9 Hz in a fresh-clone test run) with the 4 joints of the window spread
-    # over 10 s that registering the newest frames gave before; the issue's 5.6 Hz before the
-    # live fit. The share of segmented frames that get joints is not asserted: the live fit
-    # keeps only the newest frame when it falls behind, and that share moves with the load
-    assert joints_hz >= 7.5 and with_joints > 0, done.stdout
+    # 29.0 Hz of 30 with one core kept busy by another process, 24.2 Hz with both (6-10
+    # joints: the window is whichever 10 frames the camera stage passed on); the issue's
+    # 5.6 Hz before the live fit. The share of segmented frames that get joints is not
+    # asserted: the live fit keeps only the newest frame when it falls behind, and that
+    # share moves with the load
+    assert joints_hz >= 10.0 and with_joints > 0, done.stdout
     registration_log = (tmp_path / 'out' / 'logs' / 'registration_node.log').read_text()
     assert 'the skeleton is learned: registration runs at nice' in registration_log
     for name in ('registration_node', 'accumulator_node', 'joint_estimation_node'):
