@@ -2,12 +2,13 @@
 priority that drops only when asked, and a new child after the old one died."""
 import os
 import signal
+import time
 
 import numpy as np
 import pytest
 
 from skel_extract_ros.core.registration import NonRigidRegistration, RegistrationParams
-from skel_extract_ros.nodes.registration_process import ChildProcessDied, RegistrationProcess, build_rest_pose
+from skel_extract_ros.nodes.registration_process import ChildProcessDied, RegistrationProcess, RestPoseProcess
 
 from two_bone import two_bone_sequence
 
@@ -72,12 +73,27 @@ def test_the_child_loads_neither_rclpy_nor_open3d(sequence, child):
     assert 'open3d' not in maps and 'rclpy' not in maps and 'librcl' not in maps
 
 
-def test_the_rest_pose_is_built_in_a_child_that_ends_with_it(human_clean):
+def test_the_rest_pose_is_built_in_a_warm_child_that_ends_with_it(human_clean):
     from skel_extract_ros.core.preprocess import Preprocessor
     from skel_extract_ros.core.rest_pose import RestPose, RestPoseError, RestPoseParams
     params = RestPoseParams(n_points=500)
     observed = Preprocessor()(human_clean.clouds[0].reshape(-1, 3))
-    here, there = RestPose.from_points(observed, params), build_rest_pose(observed, params)
-    np.testing.assert_array_equal(there.points, here.points)     # the same deterministic steps
+    builder = RestPoseProcess()
+    builder.warm()
+    child = builder._child
+    # the child imports Open3D before it is asked (while the node waits for the subject)
+    deadline = time.monotonic() + 60
+    while 'open3d' not in open(f'/proc/{child.pid}/maps').read():
+        assert time.monotonic() < deadline, 'the warm child never loaded Open3D'
+        time.sleep(0.05)
+    builder.warm()
+    assert builder._child is child                              # warm is idempotent
     with pytest.raises(RestPoseError, match='usable points'):
-        build_rest_pose(observed[:50], params)
+        builder.build(observed[:50], params)
+    assert builder._child is child                              # no rest pose: kept for the next frame
+    here, there = RestPose.from_points(observed, params), builder.build(observed, params)
+    np.testing.assert_array_equal(there.points, here.points)     # the same deterministic steps
+    assert builder._child is None and child._process.poll() == 0     # ended with its rest pose
+    there = builder.build(observed, params)                      # a new child when asked again
+    np.testing.assert_array_equal(there.points, here.points)
+    builder.close()

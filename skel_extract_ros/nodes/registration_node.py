@@ -61,7 +61,7 @@ from .common import (LATCHED_QOS, SENSOR_QOS, STREAM_QOS, ParameterError, Thrott
                      declare_dataclass, release_freed_memory, run_node)
 from .conversions import cloud_message, stamp_ns
 from .diagnostics import OK, WARN, NodeDiagnostics
-from .registration_process import ChildProcessDied, RegistrationProcess, build_rest_pose
+from .registration_process import ChildProcessDied, RegistrationProcess, RestPoseProcess
 from .worker import Worker
 
 SECTION = 'registration_node'
@@ -121,6 +121,7 @@ class RegistrationNode(Node):
         self.epoch, self._registration_epoch = 0, 0
         self._start_camera()
         self.registration_process = RegistrationProcess(niceness)
+        self.rest_pose_process = RestPoseProcess()
         self._start_registration()
         self._done = 0                 # clouds finished by either stage (tests, diagnostics)
         self._count_lock = threading.Lock()
@@ -227,6 +228,7 @@ class RegistrationNode(Node):
     def _start_registration(self) -> None:
         self.partial_frames = 0
         self.rest_pose = None
+        self.rest_pose_process.warm()
 
     def _start_over(self) -> None:
         """A new rest pose from the next good cloud (the registration stage sees the epoch)."""
@@ -380,7 +382,7 @@ class RegistrationNode(Node):
                                          f'(of {segmentation.n_valid} valid); is the subject in view?')
                 return
             try:
-                rest_pose = build_rest_pose(observed, self.rest_params)
+                rest_pose = self.rest_pose_process.build(observed, self.rest_params)
             except RestPoseError as error:
                 self.log.warn('no_rest', f'no rest pose from this cloud: {error}')
                 return
@@ -422,6 +424,7 @@ class RegistrationNode(Node):
         self.registrar.stop()
         self.camera.stop()
         self.registration_process.close()
+        self.rest_pose_process.close()
         return super().destroy_node()
 
 

@@ -20,11 +20,16 @@ is built in the node and sent once per rest pose; afterwards only the frame's ob
 points (N, 3) and its FrameResult (~50 kB) cross.
 
 The rest pose (Open3D's Poisson reconstruction) is built in a child of its own that ends
-with it (`build_rest_pose`): Open3D costs a process 170 MB resident for as long as it
-lives, and the node needs it once per rest pose.
+with it (`RestPoseProcess`): Open3D costs a process 170 MB resident for as long as it
+lives, and the node needs it once per rest pose. That child starts when a rest pose is
+wanted (node start, start over), not when the subject's first whole frame comes: its Python
+start and Open3D import (1.6 s on a quiet 2-core machine, 3-4 s beside a 30 Hz camera
+stage) then happen while the segmentation still waits for motion, not on the way to the
+first skeleton.
 """
 from __future__ import annotations
 
+import importlib
 import os
 import pickle
 import signal
@@ -37,7 +42,7 @@ import numpy as np
 from ..core.registration import FrameResult, NonRigidRegistration
 from ..core.rest_pose import RestPose, RestPoseParams
 
-__all__ = ['ChildProcessDied', 'RegistrationProcess', 'build_rest_pose']
+__all__ = ['ChildProcessDied', 'RegistrationProcess', 'RestPoseProcess']
 
 
 class ChildProcessDied(RuntimeError):
@@ -47,9 +52,10 @@ class ChildProcessDied(RuntimeError):
 class _Child:
     """One `python -m` child running _serve(); call() is one request and its answer."""
 
-    def __init__(self):
+    def __init__(self, preload: tuple = ()):
+        """preload: modules the child imports before it reads its first call."""
         # stderr stays the node's: a traceback of the child shows in the node's log
-        self._process = subprocess.Popen([sys.executable, '-m', __name__], stdin=subprocess.PIPE,
+        self._process = subprocess.Popen([sys.executable, '-m', __name__, *preload], stdin=subprocess.PIPE,
                                          stdout=subprocess.PIPE, close_fds=True)
         self.pid = self._process.pid
         self._lock = threading.Lock()
@@ -138,21 +144,47 @@ class RegistrationProcess:
         self._child.close()
 
 
-def build_rest_pose(observed: np.ndarray, params: RestPoseParams) -> RestPose:
-    """RestPose.from_points(observed (N, 3) m, params) in a short-lived child process (a few
-    seconds more than in-process: a Python start and the Open3D import). Raises what
-    from_points raises (RestPoseError), or ChildProcessDied."""
-    child = _Child()
-    try:
-        return child.call('rest_pose', np.ascontiguousarray(observed, dtype=np.float64), params)
-    finally:
-        child.close()
+class RestPoseProcess:
+    """RestPose.from_points in a child process that has imported Open3D before it is asked.
+
+    `warm` starts the child (idempotent); `build` builds one rest pose in it and ends it on
+    success, handing its memory back. A frame that gives no rest pose (RestPoseError) keeps
+    the child for the next frame.
+    """
+
+    def __init__(self):
+        self._child: _Child | None = None
+
+    def warm(self) -> None:
+        """Start the child now, if there is none, so that `build` does not wait for it."""
+        if self._child is None:
+            self._child = _Child(preload=('open3d',))
+
+    def build(self, observed: np.ndarray, params: RestPoseParams) -> RestPose:
+        """observed (N, 3) m -> RestPose.from_points(observed, params). Raises what
+        from_points raises (RestPoseError), or ChildProcessDied (the next call starts a new
+        child)."""
+        self.warm()
+        try:
+            rest_pose = self._child.call('rest_pose', np.ascontiguousarray(observed, dtype=np.float64), params)
+        except ChildProcessDied:
+            self.close()
+            raise
+        self.close()
+        return rest_pose
+
+    def close(self) -> None:
+        if self._child is not None:
+            self._child.close()
+            self._child = None
 
 
 def _serve() -> None:
     """The child: answer calls until stdin closes."""
     # Ctrl-C reaches the whole process group: the node, not the child, decides when it ends
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    for module in sys.argv[1:]:
+        importlib.import_module(module)
     requests, answers = sys.stdin.buffer, sys.stdout.buffer
     sys.stdout = sys.stderr            # a stray print must not corrupt the answers
     registration = None
