@@ -62,8 +62,13 @@ def check_against_offline(sequence, filtered, registered, clouds):
     assert np.percentile(distance, 99) < 0.05 and len(subject) > 1000
 
 
-def test_node_in_a_room_waits_for_the_subject_and_registers_only_it(ros, walk_in):
+def test_node_in_a_room_waits_for_the_subject_and_registers_only_it(ros, walk_in, monkeypatch):
+    from skel_extract_ros.nodes import registration_node as module
+    # the rest pose process ends at the first frame with nobody in view, starts again when
+    # the subject moves in
+    monkeypatch.setattr(module, 'REST_POSE_IDLE_RELEASE_S', 0.0)
     node = registration_node(ros)
+    assert node.rest_pose_process.is_warm
     registered = ros.listen('registered_points', PointCloud2, STREAM_QOS)
     filtered = ros.listen('filtered_points', PointCloud2, STREAM_QOS)
     rests = ros.listen('rest_points', PointCloud2, LATCHED_QOS)
@@ -78,6 +83,8 @@ def test_node_in_a_room_waits_for_the_subject_and_registers_only_it(ros, walk_in
     # nobody in view at first: said (throttled), nothing registered, no rest pose from the room
     assert any('nobody in view' in line for line in node.log.history)
     assert len(decode_xyz(filtered[0])) == 0
+    # ended with nobody in view, started again when the subject came, ended with its rest pose
+    assert node.rest_pose_process.starts >= 2 and not node.rest_pose_process.is_warm
     check_against_offline(walk_in, filtered, registered, walk_in.clouds)
     # the camera moved: forget the scene, keep going
     done = ros.call(Trigger, 'registration_node/reset_background')

@@ -41,6 +41,7 @@ at camera rate whatever registration costs:
 from __future__ import annotations
 
 import threading
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -65,6 +66,10 @@ from .registration_process import ChildProcessDied, RegistrationProcess, RestPos
 from .worker import Worker
 
 SECTION = 'registration_node'
+# The rest pose child (290 MB resident, Open3D loaded) waits warm this long with nobody in
+# view, then is ended until a region moves: an idle robot does not carry it for hours, and a
+# subject who comes at once does not wait for its start (bench/README.md)
+REST_POSE_IDLE_RELEASE_S = 10.0
 
 
 @dataclass
@@ -229,6 +234,18 @@ class RegistrationNode(Node):
         self.partial_frames = 0
         self.rest_pose = None
         self.rest_pose_process.warm()
+        self._somebody_at = time.monotonic()
+
+    def _rest_pose_process_while_waiting(self, status: str) -> None:
+        """Warm while a subject may come; ended after REST_POSE_IDLE_RELEASE_S of nobody."""
+        now = time.monotonic()
+        if status != STATUS_NOBODY:
+            self._somebody_at = now
+            self.rest_pose_process.warm()
+        elif self.rest_pose_process.is_warm and now - self._somebody_at > REST_POSE_IDLE_RELEASE_S:
+            self.rest_pose_process.close()
+            self.get_logger().info(f'nobody in view for {REST_POSE_IDLE_RELEASE_S:.0f} s: the rest pose '
+                                   'process ends until something moves')
 
     def _start_over(self) -> None:
         """A new rest pose from the next good cloud (the registration stage sees the epoch)."""
@@ -370,6 +387,7 @@ class RegistrationNode(Node):
                 self.registration_process.restart()     # learning the new skeleton comes first
         stamp, observed, segmentation = stamp_ns(frame.header), frame.observed, frame.segmentation
         if self.rest_pose is None:
+            self._rest_pose_process_while_waiting(segmentation.status)
             waiting = waits_for_subject(segmentation, self.partial_frames)
             self.partial_frames += int(segmentation.touches_border)
             if waiting:

@@ -154,11 +154,17 @@ class RestPoseProcess:
 
     def __init__(self):
         self._child: _Child | None = None
+        self.starts = 0                   # children started so far
+
+    @property
+    def is_warm(self) -> bool:
+        return self._child is not None
 
     def warm(self) -> None:
         """Start the child now, if there is none, so that `build` does not wait for it."""
         if self._child is None:
             self._child = _Child(preload=('open3d',))
+            self.starts += 1
 
     def build(self, observed: np.ndarray, params: RestPoseParams) -> RestPose:
         """observed (N, 3) m -> RestPose.from_points(observed, params). Raises what
