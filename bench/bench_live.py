@@ -1,25 +1,32 @@
 """Live joints without registration: the learned skeleton fitted to every camera frame's
-observed subject points (core.live.ArticulatedTracker), against the offline joints, as the
+observed subject points (core.live.CameraTracker), against the offline joints, as the
 joint node does it (live_frames camera).
 
     python bench/bench_live.py [--only wave,punch] [--scenes empty,room] [--frames 90]
-                               [--iterations 3] [--sweeps 1] [--lag 3] [--work DIR]
+                               [--iterations 3] [--sweeps 1] [--lag 30] [--schemes reach,bones]
+                               [--work DIR]
 
 For each real clip (../shared/data, as bench_real_motion.py): simulate the bag (kept in
 --work and reused), learn the skeleton as `skel-extract run` does (SkeletonPipeline:
-registration, Steps 2-3 on the key frames). Then the node's live scheme: the registration
-takes every `--lag`-th frame and answers `--lag` frames later (a registration at a third
-of the camera rate); every camera frame is fitted from its observed points alone, seeded
-with the model's fit of the newest registered frame it has; a frame the fit reports lost
-gets the seed's joints. Printed per row: live vs offline joints on the same frames
-(median, p95, on Alg. 2's key frames and on all), the same for holding the seed's joints
-(what waiting for the registration gives), the ground-truth scores, the lost frames and
-the per-frame fit time (median, p95; nothing else may run while timing).
+registration, Steps 2-3 on the key frames; kept in --work too: empty it after changing
+those). Then the node's live
+scheme: the registration takes every `--lag`-th frame and answers `--lag` frames later
+(30: a registration a second at 30 Hz, as the node once tracking; 3 was this bench's
+cadence before); every camera frame is fitted from its observed points alone, started
+from the model's fit of the newest registered frame it has. Schemes: `reach` (the node:
+the whole-body move and the joint weight ramp in each EM iteration, the registered pose
+for a diverged fit) and `bones` (the node before: bone-by-bone updates at Alg. 2's joint
+weight only, the registered pose for a frame with a bone without data).
+Printed per row: live vs offline joints on the same frames (median, p95, on Alg. 2's key
+frames and on all), the same for holding the registered pose's joints (what waiting for
+the registration gives), the ground-truth scores, the frames that got the registered pose
+and the per-frame fit time (median, p95; nothing else may run while timing).
 """
 from __future__ import annotations
 
 import argparse
 import itertools
+import pickle
 import subprocess
 import sys
 import tempfile
@@ -35,7 +42,7 @@ sys.path.insert(0, str(REPO / 'bench'))
 from bench_real_motion import CLI, subjects  # noqa: E402
 
 from skel_extract_ros.bag import read_cloud_frames, select_cloud_topic  # noqa: E402
-from skel_extract_ros.core.live import ArticulatedTracker, LiveJointTracker  # noqa: E402
+from skel_extract_ros.core.live import ArticulatedTracker, CameraTracker, LiveJointTracker  # noqa: E402
 from skel_extract_ros.core.pipeline import SkeletonPipeline  # noqa: E402
 from skel_extract_ros.evaluation import GroundTruth, PredictedSkeleton, evaluate_joints  # noqa: E402
 
@@ -50,7 +57,12 @@ def simulated_bag(name, source_args, scene, frames, work: Path) -> Path:
     return bag
 
 
-def live_row(bag: Path, iterations: int, sweeps: int, lag: int) -> dict:
+def learned(bag: Path) -> tuple:
+    """(registered (F, M, 3), PipelineResult, observed [(N_t, 3)], JointParams, stamps) of
+    `skel-extract run` on the bag; kept beside the bag (pickle) for the next scheme or run."""
+    cache = bag.parent / f'{bag.name}_learned.pkl'
+    if cache.is_file():
+        return pickle.loads(cache.read_bytes())
     topic = select_cloud_topic(bag, None)
     stamps, clouds = [], []
     for frame in read_cloud_frames(bag, topic):
@@ -59,32 +71,45 @@ def live_row(bag: Path, iterations: int, sweeps: int, lag: int) -> dict:
     pipeline = SkeletonPipeline()
     registered = pipeline.register(clouds)
     result = pipeline.extract(registered)
+    value = (registered, result, pipeline.registration.observed_, pipeline.joint_params, stamps)
+    cache.write_bytes(pickle.dumps(value))
+    return value
+
+
+def live_row(bag: Path, iterations: int, sweeps: int, lag: int, scheme: str) -> dict:
+    registered, result, observed, params, stamps = learned(bag)
     model, frames = result.model, result.frames
-    observed = pipeline.registration.observed_
-    params = pipeline.joint_params
     registered_fit = LiveJointTracker(model, params)
-    tracker = ArticulatedTracker(model, params, sweeps=sweeps, iterations=iterations)
     poses = {}
 
     def pose(frame):
         if frame not in poses:
             poses[frame] = registered_fit.fit(registered[frame])
         return poses[frame]
-    # the node's scheme: the registration takes every `lag`-th frame and answers `lag`
-    # frames later; each camera frame is fitted from the newest registered pose it has
+    # the node's cadence: the registration takes every `lag`-th frame and answers `lag`
+    # frames later (at 30 Hz, lag 30 is a registration a second, as the node once tracking)
     scored = frames[(frames >= frames[0] + lag) & np.array([len(observed[f]) > 0 for f in frames])]
     seeds = frames[0] + ((scored - lag - frames[0]) // lag) * lag
     live = np.full((len(scored), model.n_joints, 3), np.nan)
     held = np.full_like(live, np.nan)
     seconds, lost = [], 0
+    # reach: the joint node's scheme (core.live.CameraTracker); bones: the node before
+    # (no reach, the registered pose for any frame the fit reports lost)
+    tracker = ArticulatedTracker(model, params, sweeps=sweeps, iterations=iterations, reach=scheme == 'reach')
+    camera = CameraTracker(tracker, registered_fit)
     for row, (index, seed) in enumerate(zip(scored, seeds)):
         held[row] = registered_fit.joints_of(*pose(seed))
-        tracker.seed(*pose(seed))
         started = time.perf_counter()
-        live[row] = tracker.track(observed[index])
+        if scheme == 'reach':
+            camera.registered(int(seed), registered[seed])
+            live[row], outcome = camera.track(int(index), observed[index])
+            lost += outcome == 'lost'
+        else:
+            tracker.seed(*pose(seed))
+            live[row] = tracker.track(observed[index])
+            if tracker.lost:
+                live[row], lost = held[row], lost + 1
         seconds.append(time.perf_counter() - started)
-        if tracker.lost:          # the node publishes the seed's joints then
-            live[row], lost = held[row], lost + 1
     offline = result.joint_positions[np.searchsorted(frames, scored)]
     gap = np.linalg.norm(live - offline, axis=2)                                # (F, J)
     hold_gap = np.linalg.norm(held - offline, axis=2)
@@ -112,7 +137,11 @@ def main(argv=None) -> int:
     parser.add_argument('--frames', type=int, default=90)
     parser.add_argument('--iterations', type=int, default=3)
     parser.add_argument('--sweeps', type=int, default=1)
-    parser.add_argument('--lag', type=int, default=3)
+    parser.add_argument('--lag', type=int, default=30)
+    parser.add_argument('--schemes', default='reach,bones',
+                        help='reach: the joint node (core.live.CameraTracker: whole-body move and joint weight '
+                             'ramp, the registered pose when the fit diverges); bones: the node before (bone-by-bone '
+                             'updates at Alg. 2\'s joint weight, the registered pose when a bone has no data)')
     parser.add_argument('--work', type=Path)
     args = parser.parse_args(argv)
     work = args.work or Path(tempfile.mkdtemp(prefix='bench_live_'))
@@ -120,19 +149,19 @@ def main(argv=None) -> int:
     rows = [(n, a, s) for (n, a), s in itertools.product(subjects([o for o in args.only.split(',') if o]),
                                                         args.scenes.split(',')) if n != 'samba']
     print(f'iterations {args.iterations}, sweeps {args.sweeps}, registration lag {args.lag} frames\n')
-    print('| subject_scene | joints | points | live - offline, key frames / all: median, p95 (cm) '
+    print('| subject_scene | scheme | joints | points | live - offline, key frames / all: median, p95 (cm) '
           '| held - offline: median, p95 (cm) | offline: artic. recall / mean (cm) '
-          '| live: artic. recall / mean (cm) | lost (seed joints published) | fit ms median / p95 |')
-    print('|---|---|---|---|---|---|---|---|---|')
-    for name, source_args, scene in rows:
+          '| live: artic. recall / mean (cm) | lost (registered joints published) | fit ms median / p95 |')
+    print('|---|---|---|---|---|---|---|---|---|---|')
+    for (name, source_args, scene), scheme in itertools.product(rows, args.schemes.split(',')):
         try:
             row = live_row(simulated_bag(name, source_args, scene, args.frames, work), args.iterations, args.sweeps,
-                           args.lag)
+                           args.lag, scheme)
         except Exception as error:  # a row that fails is reported, the others still run
-            print(f'| {name}_{scene} | failed: {type(error).__name__}: {error} ||||||||')
+            print(f'| {name}_{scene} | {scheme} | failed: {type(error).__name__}: {error} ||||||||')
             continue
         off, live = row['offline'], row['live']
-        print(f"| {name}_{scene} | {row['joints']} | {row['points']} | {row['gap_key_median_cm']:.1f} / "
+        print(f"| {name}_{scene} | {scheme} | {row['joints']} | {row['points']} | {row['gap_key_median_cm']:.1f} / "
               f"{row['gap_median_cm']:.1f}, {row['gap_p95_cm']:.1f} | {row['hold_median_cm']:.1f}, "
               f"{row['hold_p95_cm']:.1f} | {off.articulated_recall:.2f} / "
               f"{100 * off.mean_error_m:.1f} | {live.articulated_recall:.2f} / {100 * live.mean_error_m:.1f} "

@@ -13,7 +13,9 @@ PYTHON_BIN="${PYTHON:-}"
 log() { echo "[setup] $*" >&2; }
 
 # --- system library for Open3D -------------------------------------------------------------
-if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then
+# (grep reads all of ldconfig's output: with -q it stops early, ldconfig dies of SIGPIPE and
+# pipefail calls the library missing, so apt ran on every call)
+if ! ldconfig -p 2>/dev/null | grep 'libusb-1.0.so.0' >/dev/null; then
   log "installing Debian package libusb-1.0-0 (needed by Open3D)"
   SUDO=""
   if [ "$(id -u)" != "0" ]; then SUDO="sudo"; fi

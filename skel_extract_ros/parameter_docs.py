@@ -146,10 +146,11 @@ _JOINTS = {
     'min_tau': ('lower bound of tau, m^2', (0.0, INF)),
     'buffer_size': ('registered + filtered frames kept to find a structure window in', (2, 100_000)),
     'live_frames': ('which frames get live joints: camera (every filtered_points frame, the learned skeleton '
-                    'fitted to its subject points, seeded with the newest registered frame; never waits for '
+                    'fitted to its subject points, started from the newest registered frame; never waits for '
                     'registration) or registered (registered frames only, as skel-extract run; lossless replay)',
                     _ANY),
-    'live_iterations': ('EM iterations of the live fit to a camera frame', (1, 100)),
+    'live_iterations': ('EM iterations of the live fit to a camera frame (each: the whole-body move, then the '
+                        'bone-by-bone update with the joint weight growing to Alg. 2\'s at the last)', (1, 100)),
     'live_sweeps': ('live per-frame fit: bone-by-bone passes after the rigid initialisation', (0, 100)),
     'joint_diameter': ('diameter of the joint spheres in skeleton/markers, m', (1e-4, 10.0)),
 }

@@ -6,7 +6,7 @@ from scipy.spatial.transform import Rotation
 from skel_extract_ros.core.preprocess import Preprocessor
 from skel_extract_ros.core.registration import (STATUS_DIVERGED, STATUS_EMPTY, STATUS_OK,
                                                 NonRigidRegistration, RegistrationParams)
-from skel_extract_ros.core.rigid import rotations_from_h
+from skel_extract_ros.core.rigid import rotations_from_h, weighted_rigid_fit
 from skel_extract_ros.core.rest_pose import RestPose
 from skel_extract_ros.core.segmentation import SegmentationParams
 from skel_extract_ros.core.sequence import SequenceRegistration
@@ -50,6 +50,21 @@ def test_kabsch_special_case_recovers_a_known_rotation():
     b = a @ true.T
     H = np.einsum('ni,nj->ij', a, b)[None]  # sum a b^T
     np.testing.assert_allclose(rotations_from_h(H)[0], true, atol=1e-10)
+
+
+
+def test_weighted_rigid_fit_recovers_a_motion_and_ignores_zero_weights():
+    rng = np.random.default_rng(2)
+    source = rng.normal(size=(60, 3))
+    true = Rotation.from_rotvec([-0.3, 0.9, 0.2]).as_matrix()
+    target = source @ true.T + np.array([0.5, -0.2, 1.0])
+    target[:10] += rng.normal(scale=0.5, size=(10, 3))        # wrong pairs, given no weight
+    weights = np.r_[np.zeros(10), rng.uniform(0.5, 2.0, 50)]
+    R, t = weighted_rigid_fit(source, target, weights)
+    np.testing.assert_allclose(R, true, atol=1e-10)
+    np.testing.assert_allclose(t, [0.5, -0.2, 1.0], atol=1e-10)
+    R_all, _ = weighted_rigid_fit(source, target)             # equal weights: pulled by them
+    assert np.abs(R_all - true).max() > 1e-3
 
 
 def _m_step_objective(reg, estep, sigma2, R, T, R0, T0, stiffness):

@@ -24,22 +24,28 @@ camera:
 - *prediction*: each bone starts from its constant-velocity prediction (its motion from
   two frames back to the last, applied once more), and E_small pulls towards it;
 - *reach*: each frame starts at tau = max(the last frame's converged tau, the mean squared
-  distance of the observations to the predicted model / 3);
+  distance of the observations to the predicted model / 3); each iteration first moves
+  the whole skeleton rigidly onto the E-step's targets, then runs the bone blocks with
+  alpha growing geometrically from LIVE_ALPHA_START zeta M to Alg. 2's zeta M at the last
+  iteration. At Alg. 2's alpha from the start, the bone-by-bone update cannot move a
+  chain (each bone is held at its joints by neighbours not yet moved): a person who
+  walked 20 cm, or an arm that swung, since the starting pose stayed there;
 - *unseen parts*: a point with no observation near it has P1 = 0 and only the joint term
   and the prediction move its bone;
-- *losing a limb*: a frame whose fit leaves tau far above the tracking noise, or a bone
-  without data, is reported `lost`, for the caller to re-seed the tracker from the newest
-  registered frame.
-The joint node (live_frames camera) seeds it on every camera frame with the model's fit of
-the newest registered frame and runs a few iterations: measured on real motion
-(bench/README.md, "Live joints at camera rate") that is about as close to the offline
-joints as holding the seed (p95 equal or slightly better, median equal or worse): it lags
-fast limbs (the whole body's small misfit sets the reach, so a hand 9 cm from its
-prediction is out of it; more iterations and other starting taus were measured, none
-better), and bones Alg. 2's weights drained are undetermined. Tracking from its own
-previous frames instead (seeded only when lost) was worse than holding; so was
-recapturing bones inside it (core.recapture, bones turned about their joint); an E-step
-over the model points the camera can see (registration.ObservedView) changed nothing.
+- *losing the subject*: a frame whose fit leaves tau far above the tracking noise is
+  `diverged`; one that also leaves a bone without data is `lost`.
+`CameraTracker` is the joint node's live path (live_frames camera): every camera frame is
+fitted from the model's fit of the newest registered frame at or before it (up to a
+second old once tracking), a diverged frame gets that registered pose. Measured on real
+motion at the node's cadence (bench/README.md, "Reach"): p95 distance to the offline
+joints better or equal on 9 of 10 clip/scene rows (walk 232 -> 67 cm, cow 37 -> 27 cm),
+worse on one (a wave with little motion, 2.1 -> 3.3 cm). Measured and not kept: tracking
+from its own previous frames, corrected by each registered frame at its stamp (drifts
+between registrations: worse than starting from the registered pose on 3 of 4 rows);
+moving each bone's subtree about its joint as well as the whole body (a limb bent
+differently pulls the fit of everything it hangs from); before: recapturing bones inside
+the fit (core.recapture), an E-step over the model points the camera can see
+(registration.ObservedView), more iterations.
 
     >>> tracker = ArticulatedTracker(model, JointParams())
     >>> tracker.seed(rotations, translations)           # (B, 3, 3), (B, 3): a known pose
@@ -53,7 +59,7 @@ from scipy.spatial import cKDTree
 from .gmm import gmm_posteriors, nearest_centroids
 from .joints import JointParams
 from .point_sets import finite_rows
-from .rigid import fit_rigid_segments, rotations_from_h
+from .rigid import fit_rigid_segments, rotations_from_h, weighted_rigid_fit
 from .skeleton_model import SkeletonModel
 from .structure import joint_trajectories
 
@@ -62,6 +68,15 @@ from .structure import joint_trajectories
 LOST_SUPPORT = 0.1
 # bones this small (points of the model subset) are not counted when deciding `lost`
 LOST_MIN_POINTS = 10
+# the live fit's joint weight in its first EM iteration, relative to Alg. 2's zeta * M (it
+# grows geometrically to zeta * M at the last): measured on real motion, 1e-4 and 1e-6 alike,
+# 1e-2 no better than no ramp, 1e-12 (no joint term at first) worse (bench/README.md,
+# "Reach: the whole-body move and the joint weight ramp")
+LIVE_ALPHA_START = 1e-4
+# reweighting rounds of the whole-body move (Cauchy weights, the scale the median residual):
+# a limb bent otherwise than its starting pose should not turn the body. 3 and 10 measured
+# alike; 0 leaves the two-bone bend 10 % further off and real walks 0.5-1.3 cm (ground truth)
+WHOLE_BODY_ROUNDS = 3
 
 
 class _BoneBlocks:
@@ -108,6 +123,15 @@ class _BoneBlocks:
             centres = np.array([c for _, c in links]).reshape(-1, 3)
             self._bones.append((m, slot, self._weights[m, slot], rest[m], others, centres, centres.sum(axis=0)))
 
+        # each tree of the skeleton (one for a connected skeleton): its bones and the points
+        # they carry, for `move_whole_body`
+        roots = np.flatnonzero(self._parents < 0)
+        tree_of = np.arange(len(self._parents))
+        for _ in range(len(self._parents)):         # each bone's root, by pointer jumping
+            tree_of = np.where(self._parents[tree_of] < 0, tree_of, self._parents[tree_of])
+        self._trees = [(np.flatnonzero(tree_of == root), np.flatnonzero(tree_of[self._dominant] == root))
+                       for root in roots]
+
     @property
     def n_bones(self) -> int:
         return len(self._parents)
@@ -122,13 +146,13 @@ class _BoneBlocks:
         return self._weights[..., None] * moved
 
     def sweep(self, targets: np.ndarray, point_weights, rotations: np.ndarray, translations: np.ndarray,
-              anchors: tuple | None = None) -> None:
+              anchors: tuple | None = None, alpha: float | None = None) -> None:
         """`self.sweeps` passes of the block update, in place on rotations (B, 3, 3) and
         translations (B, 3). targets (M, 3) m; point_weights: the data term's weight per
         point (M,) or one for all (1/m^2); anchors: (rotations, translations) E_small pulls
         towards (None: each bone's current transform, a proximal step). Returns the (M, 3)
         deformed rest points of the new transforms (Eq. 8)."""
-        gamma, alpha = self.params.gamma, self._alpha
+        gamma, alpha = self.params.gamma, self._alpha if alpha is None else alpha
         point_weights = np.broadcast_to(np.asarray(point_weights, dtype=np.float64), (len(self._rest),))
         contributions = self._contributions(rotations, translations)
         deformed = contributions.sum(axis=1)
@@ -152,6 +176,34 @@ class _BoneBlocks:
                 deformed[m] += new - contributions[m, slot]
                 contributions[m, slot] = new
         return deformed
+
+    def move_whole_body(self, targets: np.ndarray, point_weights: np.ndarray, rotations: np.ndarray,
+                        translations: np.ndarray) -> None:
+        """The whole skeleton moved as one rigid body onto the targets (M, 3) with weights
+        (M,) (the weighted Procrustes fit of all its points, reweighted robustly so that the
+        body's majority decides), in place on rotations (B, 3, 3) and translations (B, 3);
+        every joint stays together.
+
+        Why: with the joint term as stiff as Alg. 2's, the bone-by-bone update cannot move
+        the body: each bone is held at its joints by neighbours that have not moved yet, so
+        a person who stepped 20 cm since the registered frame stays where that frame put
+        them (measured on real walking: bench/README.md, "Reach"). Moving sub-chains the
+        same way (each bone's subtree turned about its joint) was measured too and not
+        kept: a limb bent differently pulls the fit of everything it hangs from.
+        """
+        deformed = self.deform(rotations, translations)
+        for members, points in self._trees:
+            weights = point_weights[points]
+            if len(points) < 3 or weights.sum() <= 1e-12:
+                continue
+            source, goal = deformed[points], targets[points]
+            R, t = weighted_rigid_fit(source, goal, weights)
+            for _ in range(WHOLE_BODY_ROUNDS):
+                residual = np.linalg.norm(source @ R.T + t - goal, axis=1)
+                scale = max(float(np.median(residual[weights > 0])), 1e-6)
+                R, t = weighted_rigid_fit(source, goal, weights / (1.0 + (residual / scale) ** 2))
+            rotations[members] = R @ rotations[members]
+            translations[members] = translations[members] @ R.T + t
 
     def joints_of(self, rotations: np.ndarray, translations: np.ndarray) -> np.ndarray:
         """(J, 3) joint positions for one frame's bone transforms."""
@@ -192,15 +244,19 @@ class ArticulatedTracker(_BoneBlocks):
     max_observed: the model points and observations the fit uses at most (strided subsets:
     the cost of a frame is linear in both, the joints need neither all of them);
     lost_tau_factor: a frame whose converged tau exceeds this many times the running
-    tracking noise (the median converged tau of the recent frames), or that leaves a bone
-    of at least LOST_MIN_POINTS points without data, is `lost`: the caller re-seeds it.
-    State: the last two frames' bone transforms (for the prediction) and tau.
+    tracking noise (the median converged tau of the recent frames) is `diverged`; a
+    diverged frame, or one that leaves a bone of at least LOST_MIN_POINTS points without
+    data, is `lost`; reach: the whole-body move and the joint weight ramp of each
+    iteration (False: the bone blocks at Alg. 2's alpha only, as before; bench_live's
+    `bones` scheme). State: the last two frames' bone transforms (for the prediction) and
+    tau.
     """
 
     def __init__(self, model: SkeletonModel, params: JointParams | None = None, sweeps: int = 1,
                  iterations: int = 5, max_points: int = 600, max_observed: int = 1000,
-                 lost_tau_factor: float = 9.0):
+                 lost_tau_factor: float = 9.0, reach: bool = True):
         super().__init__(model, params, sweeps, max_points)
+        self.reach = bool(reach)
         if iterations < 1:
             raise ValueError(f'iterations must be >= 1, got {iterations}')
         if max_observed < 10:
@@ -212,6 +268,7 @@ class ArticulatedTracker(_BoneBlocks):
         self.tau = None             # converged tau of the last frame (m^2)
         self._recent_tau = []       # converged tau of recent good frames
         self.lost = False           # the last frame's fit is not to be trusted
+        self.diverged = False       # ... because it explains the data far worse than usual
         self._counts = np.maximum(np.bincount(self._dominant, minlength=self.n_bones), 1)
         # the model points' spacing: moving less keeps the E-step's candidate lists
         self._spacing = float(np.median(cKDTree(self._rest).query(self._rest, k=2)[0][:, 1]))
@@ -227,7 +284,7 @@ class ArticulatedTracker(_BoneBlocks):
                              f'translations, got {rotations.shape} and {translations.shape}')
         self._history = [(rotations, translations)]
         self.tau = None if tau is None else max(float(tau), self.params.min_tau)
-        self.lost = False
+        self.lost = self.diverged = False
 
     def predict(self) -> tuple:
         """Constant-velocity prediction (rotations (B, 3, 3), translations (B, 3)): the motion
@@ -267,9 +324,9 @@ class ArticulatedTracker(_BoneBlocks):
         tau, stats = self._em(observed, rotations, translations, anchors, tau, (candidates, deformed))
         support = self._support(stats)
         noise = float(np.median(self._recent_tau)) if self._recent_tau else tau
-        self.lost = bool(tau > self.lost_tau_factor * noise or stats is None
-                         or (support[self._counts >= LOST_MIN_POINTS] < LOST_SUPPORT).any())
-        if not self.lost:
+        self.diverged = bool(tau > self.lost_tau_factor * noise or stats is None)
+        self.lost = bool(self.diverged or (support[self._counts >= LOST_MIN_POINTS] < LOST_SUPPORT).any())
+        if not self.diverged:
             self._recent_tau = (self._recent_tau + [tau])[-30:]
         self.tau = tau
         self._history = (self._history + [(rotations.copy(), translations.copy())])[-2:]
@@ -283,14 +340,20 @@ class ArticulatedTracker(_BoneBlocks):
         candidates, deformed = query
         queried_at = deformed
         stats = None
-        for _ in range(self.iterations):
+        for iteration in range(self.iterations):
             if np.max(np.sum((deformed - queried_at) ** 2, axis=1)) > self._spacing ** 2:
                 candidates, queried_at = nearest_centroids(observed, deformed, params.e_step_neighbours), deformed
             stats = gmm_posteriors(observed, deformed, tau, params.omega, params.e_step_neighbours,
                                    params.truncation_sigmas, candidates=candidates)
             if stats.Np < 1e-9:
                 return tau, None
-            deformed = self.sweep(stats.targets(), stats.P1 / tau, rotations, translations, anchors)
+            targets, weights = stats.targets(), stats.P1 / tau
+            alpha = None
+            if self.reach:
+                self.move_whole_body(targets, weights, rotations, translations)
+                if self.iterations > 1:
+                    alpha = self._alpha * LIVE_ALPHA_START ** (1.0 - iteration / (self.iterations - 1))
+            deformed = self.sweep(targets, weights, rotations, translations, anchors, alpha)
             tau = max(stats.squared_residual(deformed) / (3.0 * stats.Np), params.min_tau)
         return tau, stats
 
@@ -305,3 +368,54 @@ class ArticulatedTracker(_BoneBlocks):
     def track(self, observed: np.ndarray) -> np.ndarray:
         """(J, 3) joint positions (metres, the observed cloud's coordinates)."""
         return self.joints_of(*self.fit(observed))
+
+
+class CameraTracker:
+    """Joints for every camera frame of a fixed SkeletonModel (the joint node's live path).
+
+    Each camera frame is fitted from its observed points alone, started from the model's
+    fit of the newest registered frame at or before it (the registration answers about
+    once a second once a skeleton is tracked: that pose is up to a second old, and the
+    fit's reach carries body and limbs to where the points are now). A frame whose fit
+    diverges (ArticulatedTracker.diverged: it explains the data far worse than the recent
+    frames) gets the registered pose's joints instead. Measured against carrying the fit
+    from frame to frame and correcting it by each registration: better on most real
+    clips, which drift between registrations (bench/README.md, "Reach").
+
+    tracker: the ArticulatedTracker; fit: a LiveJointTracker of the same model (registered
+    points -> bone transforms). Stamps are integers (ns).
+    """
+
+    def __init__(self, tracker: ArticulatedTracker, fit: LiveJointTracker):
+        if fit.n_bones != tracker.n_bones:
+            raise ValueError(f'the registered-frame fit has {fit.n_bones} bones, the tracker {tracker.n_bones}')
+        self.tracker, self.fit = tracker, fit
+        self._registered = None                      # (stamp, rotations, translations), newest
+        self.counts = {'fitted': 0, 'lost': 0, 'registered': 0}
+
+    def registered(self, stamp: int, registered_points: np.ndarray) -> None:
+        """Take the registered frame at `stamp` (registered_points (M, 3) m, the model's
+        points) as the start of the next camera frames' fits; an older or repeated stamp is
+        ignored (nothing is fitted again)."""
+        stamp = int(stamp)
+        if self._registered is None or stamp > self._registered[0]:
+            self._registered = (stamp, *self.fit.fit(registered_points))
+
+    def track(self, stamp: int, observed: np.ndarray) -> tuple:
+        """(positions (J, 3) m, outcome) for the camera frame at `stamp` with observed (N, 3)
+        subject points: outcome 'registered' (its own registered frame is in: its fit),
+        'fitted', or 'lost' (the fit diverged: the newest registered pose's joints). Raises
+        ValueError before any registered frame, and as ArticulatedTracker.fit on bad points."""
+        if self._registered is None:
+            raise ValueError('no registered frame yet: nothing to start the live fit from')
+        registered_stamp, rotations, translations = self._registered
+        if registered_stamp == int(stamp):
+            outcome = 'registered'
+        else:
+            self.tracker.seed(rotations, translations)
+            fitted = self.tracker.fit(observed)
+            outcome = 'lost' if self.tracker.diverged else 'fitted'
+            if outcome == 'fitted':
+                rotations, translations = fitted
+        self.counts[outcome] += 1
+        return self.fit.joints_of(rotations, translations), outcome

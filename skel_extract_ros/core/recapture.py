@@ -21,7 +21,7 @@ from scipy import sparse
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from .rigid import fit_rigid_segments
+from .rigid import weighted_rigid_fit
 
 ICP_ITERATIONS = 15
 
@@ -77,12 +77,6 @@ def lost_parts(support: np.ndarray, edges: np.ndarray) -> list:
     return parts
 
 
-def rigid_fit(source: np.ndarray, target: np.ndarray) -> tuple:
-    """Least-squares (R (3, 3), t (3,)) with R source_i + t ~ target_i; (n, 3) each."""
-    rotations, translations = fit_rigid_segments(source, target[None], np.zeros(len(source), dtype=int), 1)
-    return rotations[0, 0], translations[0, 0]
-
-
 def _turn(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     """The smallest rotation (3, 3) taking direction u onto direction v."""
     u, v = u / np.linalg.norm(u), v / np.linalg.norm(v)
@@ -118,8 +112,8 @@ def rigid_onto(part_points: np.ndarray, target: np.ndarray, pivot: np.ndarray) -
         moved = part_points @ rotation.T + shift
         _, to_part = cKDTree(moved).query(target)
         _, to_target = target_tree.query(moved)
-        updated, updated_shift = rigid_fit(np.vstack([part_points[to_part], part_points]),
-                                           np.vstack([target, target[to_target]]))
+        updated, updated_shift = weighted_rigid_fit(np.vstack([part_points[to_part], part_points]),
+                                                    np.vstack([target, target[to_target]]))
         converged = np.allclose(updated, rotation, atol=1e-6) and np.allclose(updated_shift, shift, atol=1e-6)
         rotation, shift = updated, updated_shift
         if converged:

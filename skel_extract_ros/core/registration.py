@@ -108,8 +108,8 @@ from scipy.spatial import cKDTree
 from .deformation_graph import DeformationGraph
 from .gmm import GMMStatistics, gmm_posteriors
 from .point_sets import finite_rows
-from .recapture import find_recaptures, lost_parts, rigid_fit
-from .rigid import rotations_from_h
+from .recapture import find_recaptures, lost_parts
+from .rigid import rotations_from_h, weighted_rigid_fit
 
 STATUS_OK = 'ok'
 STATUS_EMPTY = 'empty'
@@ -616,7 +616,7 @@ class NonRigidRegistration:
         after = graph.node_positions + state.translations
         for nodes, anchors in lost_parts(support, graph.edges):     # a few parts, not points
             if len(anchors) >= 3:
-                rotation, shift = rigid_fit(before[anchors], after[anchors])
+                rotation, shift = weighted_rigid_fit(before[anchors], after[anchors])
             else:
                 rotation, shift = np.eye(3), (after[anchors] - before[anchors]).mean(axis=0)
             state.rotations[nodes] = np.einsum('ij,njk->nik', rotation, self.rotations[nodes])

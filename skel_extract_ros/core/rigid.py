@@ -1,4 +1,5 @@
-"""Closed-form rotations over SO(3) and batched rigid fits (Kabsch with det correction)."""
+"""Closed-form rotations over SO(3), the weighted rigid fit of two point sets and batched rigid
+fits per segment (Kabsch with det correction)."""
 from __future__ import annotations
 
 import numpy as np
@@ -26,6 +27,16 @@ def rotations_from_h(H: np.ndarray) -> np.ndarray:
     correction = np.ones((len(H), 3))
     correction[:, 2] = np.where(det < 0, -1.0, 1.0)
     return ((U * correction[:, None, :]) @ Vt).reshape(shape)
+
+
+def weighted_rigid_fit(source: np.ndarray, target: np.ndarray, weights: np.ndarray | None = None) -> tuple:
+    """argmin_(R, t) sum_i weights_i |R source_i + t - target_i|^2 (source, target (n, 3) m,
+    weights (n,) >= 0 with a positive sum, None: all 1): (R (3, 3), t (3,))."""
+    weights = np.ones(len(source)) if weights is None else np.asarray(weights, dtype=np.float64)
+    source_centre = weights @ source / weights.sum()
+    target_centre = weights @ target / weights.sum()
+    R = rotations_from_h(((source - source_centre) * weights[:, None]).T @ (target - target_centre))
+    return R, target_centre - R @ source_centre
 
 
 def segment_matrix(labels: np.ndarray, n_segments: int) -> sparse.csr_matrix:

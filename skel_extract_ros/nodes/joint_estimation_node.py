@@ -17,10 +17,11 @@ stable joint ids.
 After that, live joints (`live_frames`):
 - camera (default): every filtered_points frame (the registration node publishes one per
   camera frame, before registering it) gets the learned model fitted to its subject
-  points (core.live.ArticulatedTracker, seeded with the model's fit of the newest
-  registered frame at or before it), on a latest-frame Worker: the joints never wait for
-  registration, and a frame the fit cannot keep up with is skipped and counted. A frame
-  whose fit reports the subject lost gets the seed's joints; a frame whose own
+  points (core.live.CameraTracker: started from the model's fit of the newest registered
+  frame at or before it, up to a second old, and moved to the frame's points by the
+  whole-body move and the joint weight ramp), on a latest-frame Worker: the joints never
+  wait for registration, and a frame the fit cannot keep up with is skipped and counted. A
+  frame whose fit diverges gets the registered pose's joints; a frame whose own
   registered points are already in gets their fit.
 - registered: every registered frame gets the model fitted to its registered points
   (core.live.LiveJointTracker), as `skel-extract run` does: none is skipped (lossless
@@ -44,7 +45,7 @@ from std_msgs.msg import String
 from visualization_msgs.msg import MarkerArray
 
 from ..core.joints import JointEstimation, JointParams
-from ..core.live import ArticulatedTracker, LiveJointTracker
+from ..core.live import ArticulatedTracker, CameraTracker, LiveJointTracker
 from ..core.point_sets import finite_rows
 from ..core.rigid import fit_rigid_segments
 from ..core.skeleton_model import SkeletonModel
@@ -80,8 +81,7 @@ class JointEstimationNode(Node):
         self.pairer = StampPairer()
         self.registered_only = collections.OrderedDict()  # stamp -> (header, registered): live input
         self.tracker = None                  # LiveJointTracker of the current model
-        self.articulated = None              # its ArticulatedTracker (live_frames camera)
-        self._seed = None                    # (registered stamp, rotations, translations) of the newest seed
+        self.camera = None                   # its CameraTracker (live_frames camera)
         self.model_parents = None
         self.last_published = None           # stamp of the newest frame with joints published
         self._early_structure = None
@@ -110,7 +110,7 @@ class JointEstimationNode(Node):
                 for stamp in [s for s in frames if s < rest_stamp]:
                     del frames[stamp]
             had_model = self.tracker is not None
-            self.tracker, self.articulated, self._seed, self.last_published = None, None, None, None
+            self.tracker, self.camera, self.last_published = None, None, None
             early, self._early_structure = self._early_structure, None
         if had_model:
             self.get_logger().info('new rest pose: live joints pause until the next skeleton/structure')
@@ -236,7 +236,7 @@ class JointEstimationNode(Node):
         model = SkeletonModel(rest, labels, estimate.parents, estimate.joints, estimate.influences,
                               estimate.weights, document['joint_ids'])
         tracker = LiveJointTracker(model, self.params, self.live_sweeps)
-        articulated = ArticulatedTracker(model, self.params, iterations=self.live_iterations)
+        camera = CameraTracker(ArticulatedTracker(model, self.params, iterations=self.live_iterations), tracker)
         description = description_document(model, document['frame_id'], stamps, document['changes'])
         self.description_pub.publish(String(data=json.dumps(description)))
         with self._lock:
@@ -255,8 +255,7 @@ class JointEstimationNode(Node):
             since = done if self.tracker is None else self.last_published
             catch_up = [(s, v) for s, v in self.registered_only.items()
                         if (since is None or s > since) and s not in in_window]
-            self.tracker, self.articulated, self.model_parents = tracker, articulated, model.parents
-            self._seed = None
+            self.tracker, self.camera, self.model_parents = tracker, camera, model.parents
             published = [stamps[-1]] + [s for s, _ in catch_up[-1:]]
             self.last_published = max(published + [self.last_published or published[0]])
         self.get_logger().info(f'{model.n_joints} joints from {len(stamps)} frames in '
@@ -292,33 +291,21 @@ class JointEstimationNode(Node):
         with self._lock:
             if self.tracker is None or (self.last_published is not None and stamp <= self.last_published):
                 return
-            seeds = [s for s in self.registered_only if s <= stamp]
-            if not seeds:
+            newest = [s for s in self.registered_only if s <= stamp]
+            if not newest:
                 return
-            seed_stamp = seeds[-1]
-            registered = self.registered_only[seed_stamp][1]
-            tracker, articulated, parents, seed = self.tracker, self.articulated, self.model_parents, self._seed
+            registered_stamp = newest[-1]
+            registered = self.registered_only[registered_stamp][1]
+            camera, parents = self.camera, self.model_parents
             self.last_published = stamp
         started = time.perf_counter()
-        if seed is None or seed[0] != seed_stamp:
-            seed = (seed_stamp, *tracker.fit(registered))
-            with self._lock:
-                if self.tracker is tracker:
-                    self._seed = seed
-        if seed_stamp == stamp:
-            positions, outcome = tracker.joints_of(*seed[1:]), 'registered'
-        elif finite_rows(observed).sum() < 10:
+        camera.registered(registered_stamp, registered)      # nothing to do when already taken
+        if registered_stamp != stamp and finite_rows(observed).sum() < 10:
             self.log.warn('live_empty', f'camera frame at {stamp * 1e-9:.3f} s has {len(observed)} subject '
                                         'points: no live joints (subject out of view?)')
             self.live_fits['too_few_points'] += 1
             return
-        else:
-            articulated.seed(*seed[1:])
-            positions = articulated.track(observed)
-            outcome = 'fitted'
-            if articulated.lost:
-                # the fit left data unexplained: the newest registered pose is the better answer
-                positions, outcome = tracker.joints_of(*seed[1:]), 'lost'
+        positions, outcome = camera.track(stamp, observed)
         self.live_fits[outcome] += 1
         self.live_ms.append(1000.0 * (time.perf_counter() - started))
         self._publish_joints(header, positions, parents)
