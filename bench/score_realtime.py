@@ -1,0 +1,96 @@
+"""Score the live joints of a `skel-extract replay --realtime [--loop N]` against the bag's
+ground truth, repeated for each pass of the loop.
+
+    python bench/score_realtime.py BAG OUT [--from-pass K]
+
+BAG: the simulated bag (its gt.npz); OUT: the replay's --out directory (its output.mcap).
+skeleton.json holds the registered frames' joints only (as `run`); the live joints, one
+PoseArray per camera frame, are read from skeleton/joints in output.mcap, with the newest
+skeleton/description's joint names. Printed: the evaluate scores over every frame with
+joints and over the passes from K on (after the skeleton was learned), and the distance of
+every live joint to its nearest true joint (median, p95): meaningful where the scores
+match no joint.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+from geometry_msgs.msg import PoseArray
+from mcap.reader import make_reader
+from rclpy.serialization import deserialize_message
+from std_msgs.msg import String
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from skel_extract_ros.evaluation import GroundTruth, PredictedSkeleton, evaluate_joints, match_frames  # noqa: E402
+
+
+def live_joints(recording: Path) -> PredictedSkeleton:
+    """Every skeleton/joints message with the description's joint count, in stamp order."""
+    stamps, positions, description = [], [], None
+    with open(recording, 'rb') as stream:
+        for _schema, channel, message in make_reader(stream).iter_messages(log_time_order=True):
+            if channel.topic.endswith('skeleton/description'):
+                description = json.loads(deserialize_message(message.data, String).data)
+            elif channel.topic.endswith('skeleton/joints'):
+                msg = deserialize_message(message.data, PoseArray)
+                stamps.append(msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9)
+                positions.append([[p.position.x, p.position.y, p.position.z] for p in msg.poses])
+    if description is None:
+        raise SystemExit(f'{recording}: no skeleton/description recorded')
+    n_joints = len(description['joint_names'])
+    keep = [i for i, p in enumerate(positions) if len(p) == n_joints]
+    order = np.argsort(np.array(stamps)[keep], kind='stable')
+    return PredictedSkeleton(description['joint_names'], description['parents'], np.array(stamps)[keep][order],
+                             np.array([positions[i] for i in keep])[order])
+
+
+def looped(gt: GroundTruth, until_s: float) -> tuple:
+    """(the ground truth repeated until `until_s`, one pass in s), stamps moved on by a pass
+    each time as `replay --loop` moves them."""
+    n = len(gt.stamps)
+    pass_s = (gt.stamps[-1] - gt.stamps[0]) * n / (n - 1)
+    passes = int(np.ceil((until_s - gt.stamps[0]) / pass_s)) + 1
+    fields = {}
+    for field in dataclasses.fields(gt):
+        value = getattr(gt, field.name)
+        if field.name == 'stamps':
+            fields['stamps'] = np.concatenate([value + k * pass_s for k in range(passes)])
+        elif isinstance(value, np.ndarray) and value.ndim and len(value) == n and field.name != 'surface_bone_ids':
+            fields[field.name] = np.concatenate([value] * passes)
+    return dataclasses.replace(gt, **fields), pass_s
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('bag', type=Path)
+    parser.add_argument('out', type=Path)
+    parser.add_argument('--from-pass', type=int, default=3)
+    args = parser.parse_args(argv)
+    pred = live_joints(args.out / 'output.mcap')
+    gt, pass_s = looped(GroundTruth.load(args.bag / 'gt.npz'), float(pred.stamps.max()))
+    later = pred.stamps >= gt.stamps[0] + args.from_pass * pass_s
+    for name, chosen in (('every frame with joints', np.ones(len(pred.stamps), bool)),
+                         (f'from pass {args.from_pass}', later)):
+        if not chosen.any():
+            print(f'{name}: no frame')
+            continue
+        part = dataclasses.replace(pred, stamps=pred.stamps[chosen], positions=pred.positions[chosen])
+        report = evaluate_joints(part, gt)
+        print(f'{name}: {chosen.sum()} frames, {report.n_predicted} joints, {report.n_matched} matched, recall '
+              f'{report.recall:.2f}, articulated recall {report.articulated_recall:.2f} of {report.n_articulated}, '
+              f'precision {report.precision:.2f}, mean {100 * report.mean_error_m:.1f} cm')
+    _, gt_index = match_frames(pred.stamps, gt.stamps)
+    nearest = np.linalg.norm(pred.positions[:, :, None, :] - gt.joints[gt_index][:, None, :, :], axis=-1).min(axis=2)
+    print(f'distance of each live joint to its nearest true joint: median {100 * np.median(nearest):.1f} cm, '
+          f'p95 {100 * np.percentile(nearest, 95):.1f} cm')
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
