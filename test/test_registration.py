@@ -52,7 +52,6 @@ def test_kabsch_special_case_recovers_a_known_rotation():
     np.testing.assert_allclose(rotations_from_h(H)[0], true, atol=1e-10)
 
 
-
 def test_weighted_rigid_fit_recovers_a_motion_and_ignores_zero_weights():
     rng = np.random.default_rng(2)
     source = rng.normal(size=(60, 3))
