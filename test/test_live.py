@@ -190,7 +190,7 @@ def test_the_whole_body_move_brings_a_displaced_body_back_in_one_step(learned):
     moved_t = translations @ turn.T + np.array([0.15, -0.05, 0.02])
     start_error = np.linalg.norm(tracker.joints_of(moved_r, moved_t) - true_joints, axis=1).max()
     swept_r, swept_t = moved_r.copy(), moved_t.copy()
-    tracker.move_whole_body(targets, np.ones(len(targets)), moved_r, moved_t)
+    tracker.move_whole_body(targets, np.ones(len(targets)), tracker.deform(moved_r, moved_t), moved_r, moved_t)
     np.testing.assert_allclose(tracker.joints_of(moved_r, moved_t), true_joints, atol=1e-9)
     np.testing.assert_allclose(moved_t, translations, atol=1e-9)
     tracker.sweep(targets, 1e4, swept_r, swept_t)

@@ -123,15 +123,6 @@ class _BoneBlocks:
             centres = np.array([c for _, c in links]).reshape(-1, 3)
             self._bones.append((m, slot, self._weights[m, slot], rest[m], others, centres, centres.sum(axis=0)))
 
-        # each tree of the skeleton (one for a connected skeleton): its bones and the points
-        # they carry, for `move_whole_body`
-        roots = np.flatnonzero(self._parents < 0)
-        tree_of = np.arange(len(self._parents))
-        for _ in range(len(self._parents)):         # each bone's root, by pointer jumping
-            tree_of = np.where(self._parents[tree_of] < 0, tree_of, self._parents[tree_of])
-        self._trees = [(np.flatnonzero(tree_of == root), np.flatnonzero(tree_of[self._dominant] == root))
-                       for root in roots]
-
     @property
     def n_bones(self) -> int:
         return len(self._parents)
@@ -177,12 +168,12 @@ class _BoneBlocks:
                 contributions[m, slot] = new
         return deformed
 
-    def move_whole_body(self, targets: np.ndarray, point_weights: np.ndarray, rotations: np.ndarray,
-                        translations: np.ndarray) -> None:
-        """The whole skeleton moved as one rigid body onto the targets (M, 3) with weights
-        (M,) (the weighted Procrustes fit of all its points, reweighted robustly so that the
-        body's majority decides), in place on rotations (B, 3, 3) and translations (B, 3);
-        every joint stays together.
+    def move_whole_body(self, targets: np.ndarray, point_weights: np.ndarray, deformed: np.ndarray,
+                        rotations: np.ndarray, translations: np.ndarray) -> None:
+        """The whole skeleton (one tree: the structure's spanning tree) moved as one rigid
+        body from its deformed points (M, 3) onto the targets (M, 3) with weights (M,) (the
+        weighted Procrustes fit, reweighted robustly so that the body's majority decides),
+        in place on rotations (B, 3, 3) and translations (B, 3); every joint stays together.
 
         Why: with the joint term as stiff as Alg. 2's, the bone-by-bone update cannot move
         the body: each bone is held at its joints by neighbours that have not moved yet, so
@@ -191,19 +182,15 @@ class _BoneBlocks:
         same way (each bone's subtree turned about its joint) was measured too and not
         kept: a limb bent differently pulls the fit of everything it hangs from.
         """
-        deformed = self.deform(rotations, translations)
-        for members, points in self._trees:
-            weights = point_weights[points]
-            if len(points) < 3 or weights.sum() <= 1e-12:
-                continue
-            source, goal = deformed[points], targets[points]
-            R, t = weighted_rigid_fit(source, goal, weights)
-            for _ in range(WHOLE_BODY_ROUNDS):
-                residual = np.linalg.norm(source @ R.T + t - goal, axis=1)
-                scale = max(float(np.median(residual[weights > 0])), 1e-6)
-                R, t = weighted_rigid_fit(source, goal, weights / (1.0 + (residual / scale) ** 2))
-            rotations[members] = R @ rotations[members]
-            translations[members] = translations[members] @ R.T + t
+        if point_weights.sum() <= 1e-12:
+            return
+        R, t = weighted_rigid_fit(deformed, targets, point_weights)
+        for _ in range(WHOLE_BODY_ROUNDS):
+            residual = np.linalg.norm(deformed @ R.T + t - targets, axis=1)
+            scale = max(float(np.median(residual[point_weights > 0])), 1e-6)
+            R, t = weighted_rigid_fit(deformed, targets, point_weights / (1.0 + (residual / scale) ** 2))
+        rotations[:] = R @ rotations
+        translations[:] = translations @ R.T + t
 
     def joints_of(self, rotations: np.ndarray, translations: np.ndarray) -> np.ndarray:
         """(J, 3) joint positions for one frame's bone transforms."""
@@ -350,7 +337,7 @@ class ArticulatedTracker(_BoneBlocks):
             targets, weights = stats.targets(), stats.P1 / tau
             alpha = None
             if self.reach:
-                self.move_whole_body(targets, weights, rotations, translations)
+                self.move_whole_body(targets, weights, deformed, rotations, translations)
                 if self.iterations > 1:
                     alpha = self._alpha * LIVE_ALPHA_START ** (1.0 - iteration / (self.iterations - 1))
             deformed = self.sweep(targets, weights, rotations, translations, anchors, alpha)

@@ -33,8 +33,8 @@ def weighted_rigid_fit(source: np.ndarray, target: np.ndarray, weights: np.ndarr
     """argmin_(R, t) sum_i weights_i |R source_i + t - target_i|^2 (source, target (n, 3) m,
     weights (n,) >= 0 with a positive sum, None: all 1): (R (3, 3), t (3,))."""
     weights = np.ones(len(source)) if weights is None else np.asarray(weights, dtype=np.float64)
-    source_centre = weights @ source / weights.sum()
-    target_centre = weights @ target / weights.sum()
+    total = weights.sum()
+    source_centre, target_centre = weights @ source / total, weights @ target / total
     R = rotations_from_h(((source - source_centre) * weights[:, None]).T @ (target - target_centre))
     return R, target_centre - R @ source_centre
 
