@@ -90,7 +90,8 @@ _REGISTRATION = {
                             'is learned (from the rest pose to the first skeleton/structure), registered in '
                             'order: the window is then consecutive camera frames, as skel-extract run\'s, '
                             'and close frames register 2-3 times faster than frames a second apart; when '
-                            'full, new clouds are skipped (counted). Set it to at least the accumulator\'s '
+                            'full, new clouds are skipped (counted), before their segmentation until the '
+                            'first skeleton is described. Set it to at least the accumulator\'s '
                             'window_size', (1, 100_000)),
     'registration_niceness': ('added to the nice value of the child process that runs Alg. 1 once the '
                               'first window is learned (skeleton/structure): when the cores are short, the '

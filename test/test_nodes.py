@@ -210,6 +210,7 @@ def test_registration_node_registers_the_first_window_in_order_then_the_newest(r
     # node sees them, and only what reaches the node can be counted
     node = small_registration(ros, input_reliability='reliable', learning_queue_size=4)
     registered = ros.listen('registered_points', PointCloud2, STREAM_QOS)
+    filtered = ros.listen('filtered_points', PointCloud2, STREAM_QOS)
     pub = ros.publisher('points', PointCloud2, QoSProfile(depth=50))
     ros.wait_matched(pub)
     step = int(arm.stamps_ns[1] - arm.stamps_ns[0])
@@ -231,15 +232,23 @@ def test_registration_node_registers_the_first_window_in_order_then_the_newest(r
     assert len(learned) == 1 + 4
     assert learned == sorted(learned) and first[-1] not in learned
     assert node.registrar.dropped > 0
+    # before a skeleton exists nothing else uses a subject cloud: the camera stage segments
+    # (and publishes) only what the registration takes, and skips the rest undecoded
+    ros.wait(lambda: len(filtered) == len(learned), what='filtered_points of the registered clouds')
+    assert stamps_of(filtered) == learned
     ros.wait(lambda: any('registered in order, newer ones skipped' in m for m in ros.warnings('registration_node')),
              what='the skip warning while learning')
     # the first window is learned: the newest frames from now on (queue_size 1)
     ros.publisher('skeleton/structure', String, LATCHED_QOS).publish(String(data='{}'))
     ros.wait(lambda: node.registrar.keep == 'newest' and node.registrar.capacity == 1, what='queue_size')
+    # (no joint node will describe the skeleton: the camera stage serves every cloud again)
+    filtered_before, registered_before = len(filtered), len(registered)
     second = burst(20, 20)
     ros.wait(lambda: node.processed + node.skipped == 40, what='every cloud processed or skipped')
     ros.wait(lambda: second[-1] in stamps_of(registered), what='the newest cloud registered')
     assert stamps_of(registered) == sorted(stamps_of(registered))     # in order, throughout
+    ros.wait(lambda: second[-1] in stamps_of(filtered), what='the newest cloud on filtered_points')
+    assert len(filtered) - filtered_before > len(registered) - registered_before
 
 
 def _publish_two_bone(ros, rest, frames, start=0):

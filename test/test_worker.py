@@ -58,12 +58,16 @@ def test_keeping_the_oldest_gives_a_consecutive_run_and_reconfiguring_trims_the_
         assert started.wait(5.0)              # 0 is running: 1, 2, 3 wait, 4 and 5 are refused
         assert [worker.submit(i) for i in range(1, 6)] == [0, 0, 0, 1, 1]
         assert worker.stats()['waiting'] == 3 and worker.dropped == 2
+        # a producer that asks first skips making the item; the skip counts as a drop
+        assert worker.full
+        worker.refuse()
+        assert worker.stats()['submitted'] == 7 and worker.dropped == 3 and worker.stats()['waiting'] == 3
         # learning done: the newest only from now on; the waiting run shrinks to its newest
         assert worker.configure(1, keep='newest') == 2
         assert worker.submit(6) == 1          # replaces 3
         release.set()
         assert worker.wait_idle(5.0)
-        assert seen == [0, 6] and worker.dropped == 5
+        assert seen == [0, 6] and worker.dropped == 6 and not worker.full
         with pytest.raises(ValueError):
             worker.configure(2, keep='middle')
         with pytest.raises(ValueError):

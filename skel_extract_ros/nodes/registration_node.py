@@ -27,7 +27,10 @@ at camera rate whatever registration costs:
   first window is learned (from the rest pose to the first skeleton/structure) it takes
   them in order, holding up to `learning_queue_size` (new ones are skipped when full): the
   window is consecutive camera frames, as `skel-extract run`'s, and frames 33 ms apart
-  register in a third of the time of frames a second apart (fewer EM iterations). After
+  register in a third of the time of frames a second apart (fewer EM iterations). Until
+  the first skeleton is described nothing else uses a subject frame, so the camera stage
+  skips a cloud the queue has no room for before decoding it (counted as the queue's
+  drop): the cores go to learning. After
   that it holds at most `queue_size` waiting ones: when it falls behind, the oldest
   waiting cloud is skipped, counted and reported, so it always works on recent frames.
   With `lossless` nothing is skipped: the camera stage waits for room (back-pressure; for
@@ -116,8 +119,10 @@ class RegistrationNode(Node):
         self.create_service(Trigger, '~/reset', self._on_reset)
         self.create_service(Trigger, '~/reset_background', self._on_reset_background)
         # whichever comes first (a joint node started on its own publishes only the description)
-        self.create_subscription(String, 'skeleton/structure', self._on_skeleton, LATCHED_QOS)
-        self.create_subscription(String, 'skeleton/description', self._on_skeleton, LATCHED_QOS)
+        self.create_subscription(String, 'skeleton/structure', self._on_structure, LATCHED_QOS)
+        self.create_subscription(String, 'skeleton/description', self._on_description, LATCHED_QOS)
+        # no skeleton described yet: the camera stage works only for the registration (_observe)
+        self._described = False
         # set by the services, acted on by the camera stage before its next cloud
         self._background_reset_requested = False
         self._reset_requested = False
@@ -186,6 +191,15 @@ class RegistrationNode(Node):
         stage); processed + skipped reaches the clouds received."""
         return self._done
 
+    def _on_structure(self, msg: String) -> None:
+        if self.count_publishers('skeleton/description') == 0:
+            self._described = True      # no joint node will describe it: nothing to wait for
+        self._on_skeleton(msg)
+
+    def _on_description(self, msg: String) -> None:
+        self._described = True
+        self._on_skeleton(msg)
+
     def _on_skeleton(self, _msg: String) -> None:
         """The first window is learned (skeleton/structure) or a skeleton tracked: from now on
         Alg. 2 and the live path come first; registration only grows the skeleton. Measured:
@@ -251,6 +265,7 @@ class RegistrationNode(Node):
         """A new rest pose from the next good cloud (the registration stage sees the epoch)."""
         self._start_camera()
         self.epoch += 1
+        self._described = False
         self._learn()
 
     def _observe(self, item) -> None:
@@ -261,6 +276,15 @@ class RegistrationNode(Node):
         if self._background_reset_requested:
             self._background_reset_requested = False
             self.segmenter.reset()
+        if not self._described and not self.lossless and self.registrar.full:
+            # Until a skeleton is described nothing but the registration uses a subject
+            # frame (no live fit yet), and a full queue would drop this one after its
+            # segmentation: skip the decoding and segmentation too. The cores go to
+            # registering the window and to Alg. 2 instead (the first skeleton 2.6 s sooner,
+            # bench/README.md "Learning first"); the skip is counted as the queue's drop.
+            self.registrar.refuse()
+            self._warn_skipped()
+            return
         if not self._segment_and_pass_on(msg, info):
             self._finished()
 

@@ -100,6 +100,21 @@ class Worker:
             self._wake.notify_all()
         return dropped
 
+    @property
+    def full(self) -> bool:
+        """No room: a submit now would drop an item. A producer whose item costs work to
+        make (decode, segment) asks first, and skips the work (see `refuse`)."""
+        with self._wake:
+            return len(self._waiting) >= self.capacity
+
+    def refuse(self) -> None:
+        """Count an item the producer did not make because the queue was `full` (it would
+        have been dropped on submit): counted as dropped, like those."""
+        with self._wake:
+            self.submitted += 1
+            self.dropped += 1
+            self.rate_in.tick()
+
     def clear(self) -> int:
         """Forget the waiting items (not counted as dropped: the caller chose to); returns how many."""
         with self._wake:
