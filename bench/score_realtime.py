@@ -4,9 +4,10 @@ ground truth, repeated for each pass of the loop.
     python bench/score_realtime.py BAG OUT [--from-pass K]
 
 BAG: the simulated bag (its gt.npz); OUT: the replay's --out directory (its output.mcap).
-skeleton.json holds the registered frames' joints only (as `run`); the live joints, one
-PoseArray per camera frame, are read from skeleton/joints in output.mcap, with the newest
-skeleton/description's joint names. Printed: the evaluate scores over every frame with
+The live joints, one PoseArray per camera frame, are read from skeleton/joints in
+output.mcap, with the newest skeleton/description's joint names (skeleton.json has the
+same frames, but `evaluate` matches stamps to the bag's ground truth, which covers the
+first pass of a loop only). Printed: the evaluate scores over every frame with
 joints and over the passes from K on (after the skeleton was learned), and the distance of
 every live joint to its nearest true joint (median, p95): meaningful where the scores
 match no joint.

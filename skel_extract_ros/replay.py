@@ -18,7 +18,10 @@ DIR/output.mcap, one self-contained MCAP file (schemas and summary inside) that 
 opens and `ros2 bag play DIR/output.mcap` plays (rosbags writes a bag directory; its one
 file is moved into place when the recording closes). skeleton.json / skeleton.bvh /
 registered.npz / skeleton.png are written from the received messages: the same files as
-`skel-extract run`.
+`skel-extract run`. skeleton.json has a frame for every input frame that got joints (with
+the final skeleton's joint count): lossless, the registered frames; realtime, every camera
+frame answered, live ones included. skeleton.bvh and skeleton.png need the registered
+points of a frame: the registered frames with joints.
 """
 from __future__ import annotations
 
@@ -417,12 +420,15 @@ def _write_files(received: Received, out: Path) -> dict:
                         frame_id=np.array(received.frame_id))
     description = received.description
     n_joints = len(description['joint_names'])
+    # every frame the nodes gave joints (a live camera frame has no registered points); a
+    # frame answered before the skeleton grew has fewer joints and is left out
+    answered = sorted(s for s, p in received.joints.items() if len(p) == n_joints)
+    document = skeleton_document(description['joint_names'], description['parents'],
+                                 description['rest_positions'], np.array(answered) * 1e-9,
+                                 np.stack([received.joints[s] for s in answered]), description['frame_id'])
+    (out / 'skeleton.json').write_text(json.dumps(document))
     with_joints = [s for s in stamps_ns if s in received.joints and len(received.joints[s]) == n_joints]
     positions = np.stack([received.joints[s] for s in with_joints])
-    document = skeleton_document(description['joint_names'], description['parents'],
-                                 description['rest_positions'], np.array(with_joints) * 1e-9, positions,
-                                 description['frame_id'])
-    (out / 'skeleton.json').write_text(json.dumps(document))
     labels = np.asarray(received.structure['labels'])
     registered = np.stack([received.registered[s] for s in with_joints])
     write_skeleton_bvh(out / 'skeleton.bvh', description['joint_names'], description['parents'],
@@ -431,7 +437,7 @@ def _write_files(received: Received, out: Path) -> dict:
     observed = [received.filtered.get(s, np.empty((0, 3))) for s in with_joints]
     draw_skeleton_png(out / 'skeleton.png', observed, registered,
                       labels, positions, np.asarray(description['parents']), np.array(with_joints) * 1e-9)
-    return {'n_frames': len(stamps_ns), 'n_joints': n_joints, 'n_frames_with_joints': len(with_joints)}
+    return {'n_frames': len(stamps_ns), 'n_joints': n_joints, 'n_frames_with_joints': len(answered)}
 
 
 def _camera_delivery(received: Received, streamed_s: float) -> dict:

@@ -88,6 +88,12 @@ def test_live_at_camera_rate_on_a_room_bag(tmp_path):
     # asserted: the live fit keeps only the newest frame when it falls behind, and that
     # share moves with the load
     assert joints_hz >= 10.0 and with_joints > 0, done.stdout
+    # skeleton.json holds what a camera user got: every answered frame, the live ones too
+    # (not only the ~1 Hz registered frames), in stamp order
+    frames = json.loads((tmp_path / 'out' / 'skeleton.json').read_text())['frames']
+    registered = np.load(tmp_path / 'out' / 'registered.npz')['stamps']
+    stamps = [frame['stamp'] for frame in frames]
+    assert len(frames) >= with_joints > 2 * len(registered) and stamps == sorted(set(stamps))
     registration_log = (tmp_path / 'out' / 'logs' / 'registration_node.log').read_text()
     assert 'the skeleton is learned: registration runs at nice' in registration_log
     for name in ('registration_node', 'accumulator_node', 'joint_estimation_node'):
