@@ -8,9 +8,10 @@ The live joints, one PoseArray per camera frame, are read from skeleton/joints i
 output.mcap, with the newest skeleton/description's joint names (skeleton.json has the
 same frames, but `evaluate` matches stamps to the bag's ground truth, which covers the
 first pass of a loop only). Printed: the evaluate scores over every frame with
-joints and over the passes from K on (after the skeleton was learned), and the distance of
+joints and over the passes from K on (after the skeleton was learned), the distance of
 every live joint to its nearest true joint (median, p95): meaningful where the scores
-match no joint.
+match no joint, and the registration's error (registered.npz against the repeated ground
+truth's material points, evaluate_registration), over all and from pass K on.
 """
 from __future__ import annotations
 
@@ -28,7 +29,8 @@ from std_msgs.msg import String
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from skel_extract_ros.evaluation import GroundTruth, PredictedSkeleton, evaluate_joints, match_frames  # noqa: E402
+from skel_extract_ros.evaluation import (GroundTruth, PredictedSkeleton, evaluate_joints,  # noqa: E402
+                                         evaluate_registration, match_frames)
 
 
 def live_joints(recording: Path) -> PredictedSkeleton:
@@ -90,6 +92,13 @@ def main(argv=None) -> int:
     nearest = np.linalg.norm(pred.positions[:, :, None, :] - gt.joints[gt_index][:, None, :, :], axis=-1).min(axis=2)
     print(f'distance of each live joint to its nearest true joint: median {100 * np.median(nearest):.1f} cm, '
           f'p95 {100 * np.percentile(nearest, 95):.1f} cm')
+    registered = np.load(args.out / 'registered.npz')
+    tracking = registered['stamps'] >= gt.stamps[0] + args.from_pass * pass_s
+    scores = evaluate_registration(registered['points'], registered['stamps'], gt)
+    per_frame = np.asarray(scores['per_frame_error_m'])
+    print(f'registration: {len(per_frame)} frames ({tracking.sum()} from pass {args.from_pass}), mean '
+          f'{100 * scores["mean_error_m"]:.1f} cm, from pass {args.from_pass} mean '
+          f'{100 * per_frame[-tracking.sum():].mean() if tracking.any() else float("nan"):.1f} cm')
     return 0
 
 

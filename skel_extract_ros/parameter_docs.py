@@ -101,6 +101,11 @@ _REGISTRATION = {
                               (0, 19)),
     'lossless': ('never skip a cloud: when registration falls behind, segmentation waits for it and '
                  'so does the input (bag replay with input_reliability reliable; replay sets it)', _ANY),
+    'live_start': ('once a skeleton is tracked, register each frame starting from the joint node\'s '
+                   'newest posed model (skeleton/posed_points: the live fit of a frame since the last '
+                   'registered one) instead of from that last registered frame, up to seconds old; '
+                   'false = always from the last registered frame (Alg. 1 as in skel-extract run). Not '
+                   'with lossless', _ANY),
 }
 
 _ACCUMULATOR = {

@@ -48,6 +48,7 @@ OUTPUT_TOPICS = (
     ('skeleton/description', 'std_msgs/msg/String', True),
     ('skeleton/joints', 'geometry_msgs/msg/PoseArray', False),
     ('skeleton/markers', 'visualization_msgs/msg/MarkerArray', False),
+    ('skeleton/posed_points', 'sensor_msgs/msg/PointCloud2', False),
     ('/diagnostics', 'diagnostic_msgs/msg/DiagnosticArray', False),     # every node's health, 1 Hz
 )
 

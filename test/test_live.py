@@ -259,3 +259,9 @@ def test_camera_tracker_gives_the_registered_pose_when_the_fit_diverges(learned)
     assert outcome == 'registered'
     np.testing.assert_allclose(positions, camera.fit.track(registered[12]), atol=1e-12)
     assert camera.counts == {'fitted': 9, 'lost': 1, 'registered': 1}
+    # the posed model (where the registration may start) only after a fitted frame
+    assert camera.posed_points() is None
+    camera.track(13, observed[13])
+    rotations, translations = camera.tracker._history[-1]
+    np.testing.assert_allclose(camera.posed_points(), camera.fit.deform(rotations, translations), atol=1e-12)
+    assert camera.posed_points().shape == registered[13].shape

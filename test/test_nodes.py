@@ -251,6 +251,46 @@ def test_registration_node_registers_the_first_window_in_order_then_the_newest(r
     assert len(filtered) - filtered_before > len(registered) - registered_before
 
 
+def test_registration_starts_from_the_newest_posed_model_of_the_joint_node(ros, arm):
+    """live_start: a frame registered after a gap starts from skeleton/posed_points (the
+    joint node's live fit of a frame in the gap), and lands where frame-by-frame
+    registration does; a posed model of another size, or not newer than the last
+    registered frame, is not used."""
+    offline = SequenceRegistration(RegistrationParams(), RestPoseParams(n_points=600), PreprocessParams(),
+                                   segmentation_params=SegmentationParams(enabled=False))
+    expected = offline.register(list(arm.clouds))
+    node = small_registration(ros)
+    registered = ros.listen('registered_points', PointCloud2, STREAM_QOS)
+    pub = ros.publisher('points', PointCloud2, QoSProfile(depth=10))
+    posed_pub = ros.publisher('skeleton/posed_points', PointCloud2, STREAM_QOS)
+    for publisher in (pub, posed_pub):
+        ros.wait_matched(publisher)
+
+    def register(i):
+        pub.publish(cloud(arm.clouds[i], arm.stamps_ns[i]))
+        ros.wait(lambda: len(registered) and stamps_of(registered)[-1] == arm.stamps_ns[i],
+                 what=f'registered frame {i}')
+    register(0)
+    register(1)
+    # not newer than the last registered frame: from that frame, as Alg. 1
+    posed_pub.publish(cloud_message(expected[1], header(int(arm.stamps_ns[1]))))
+    ros.wait(lambda: node._posed is not None, what='the posed model')
+    register(2)
+    assert node.registered_from_live_pose == 0
+    # the pose of frame 6 (as the live fit gives it), then frame 7: started from it
+    posed_pub.publish(cloud_message(expected[6], header(int(arm.stamps_ns[6]))))
+    ros.wait(lambda: node._posed[0] == arm.stamps_ns[6], what='the newer posed model')
+    register(7)
+    assert node.registered_from_live_pose == 1
+    np.testing.assert_allclose(decode_xyz(registered[-1]), expected[7], atol=5e-3)
+    # another model's size: ignored (the frame is registered from frame 7)
+    posed_pub.publish(cloud_message(expected[6][:-1], header(int(arm.stamps_ns[7]) + DT)))
+    ros.wait(lambda: node._posed[1].shape[0] == len(expected[6]) - 1, what='the odd posed model')
+    pub.publish(cloud(arm.clouds[6], int(arm.stamps_ns[7]) + 2 * DT))
+    ros.wait(lambda: stamps_of(registered)[-1] == int(arm.stamps_ns[7]) + 2 * DT, what='one more frame')
+    assert node.registered_from_live_pose == 1 and ros.spinning()
+
+
 def _publish_two_bone(ros, rest, frames, start=0):
     """Stream registered + filtered clouds as the registration node would."""
     reg_pub = ros.publisher('registered_points', PointCloud2, STREAM_QOS)
@@ -357,6 +397,7 @@ def test_joint_estimation_node_live_camera_frames_do_not_wait_for_registration(r
     node = ros.add(JointEstimationNode)
     assert node.live_frames == 'camera'
     joints = ros.listen('skeleton/joints', PoseArray, STREAM_QOS)
+    posed = ros.listen('skeleton/posed_points', PointCloud2, STREAM_QOS)
     rest_pub = _publish_rest(ros, rest)
     ros.wait_matched(rest_pub)
     _publish_two_bone(ros, rest, registered[:13])
@@ -386,6 +427,15 @@ def test_joint_estimation_node_live_camera_frames_do_not_wait_for_registration(r
     assert live_error[0] < 0.7 * held_error[0], (live_error, held_error)
     assert live_error.mean() < 0.85 * held_error.mean(), (live_error, held_error)
     assert node.live_fits['fitted'] == 11 and node.live.dropped == 0
+    # every fitted camera frame's posed model (the registration's start), in the registered
+    # points' order: as close to the true points as the fit's joints are to the true joints
+    ros.wait(lambda: len(posed) == 11, what='the posed model of every fitted frame')
+    assert stamps_of(posed) == [T0 + i * DT for i in range(13, 24)]
+    posed_points = np.stack([decode_xyz(m) for m in posed])
+    assert posed_points.shape == registered[13:].shape
+    posed_error = np.linalg.norm(posed_points - registered[13:], axis=2).mean(axis=1)
+    held_points = np.linalg.norm(registered[12] - registered[13:], axis=2).mean(axis=1)
+    assert posed_error.mean() < 0.85 * held_points.mean(), (posed_error, held_points)
 
 
 MALFORMED = [

@@ -378,6 +378,7 @@ class CameraTracker:
             raise ValueError(f'the registered-frame fit has {fit.n_bones} bones, the tracker {tracker.n_bones}')
         self.tracker, self.fit = tracker, fit
         self._registered = None                      # (stamp, rotations, translations), newest
+        self._fitted = None                          # the last frame's fitted transforms, if fitted
         self.counts = {'fitted': 0, 'lost': 0, 'registered': 0}
 
     def registered(self, stamp: int, registered_points: np.ndarray) -> None:
@@ -404,5 +405,12 @@ class CameraTracker:
             outcome = 'lost' if self.tracker.diverged else 'fitted'
             if outcome == 'fitted':
                 rotations, translations = fitted
+        self._fitted = (rotations, translations) if outcome == 'fitted' else None
         self.counts[outcome] += 1
         return self.fit.joints_of(rotations, translations), outcome
+
+    def posed_points(self) -> np.ndarray | None:
+        """(M, 3) the model's points (the registered points' order) posed by LBS at the last
+        frame's fit, or None when that frame was not fitted (lost, or its own registered
+        frame): where the registration may start that frame's successors from."""
+        return None if self._fitted is None else self.fit.deform(*self._fitted)

@@ -109,7 +109,7 @@ from .deformation_graph import DeformationGraph
 from .gmm import GMMStatistics, gmm_posteriors
 from .point_sets import finite_rows
 from .recapture import find_recaptures, lost_parts
-from .rigid import rotations_from_h, weighted_rigid_fit
+from .rigid import fit_weighted_segments, rotations_from_h, weighted_rigid_fit
 
 STATUS_OK = 'ok'
 STATUS_EMPTY = 'empty'
@@ -603,43 +603,66 @@ class NonRigidRegistration:
         retried.recaptured = len(found)
         return retried
 
-    def _carry_unseen_parts(self, state: '_EMState') -> None:
+    def _carry_unseen_parts(self, state: '_EMState', start: tuple) -> None:
         """Parts without data this frame (out of sight, or lost and not recaptured) move
-        rigidly with the tracked nodes they hang on, from where they were (in place).
+        rigidly with the tracked nodes they hang on, from where EM started them (the
+        previous frame's state, or the predicted pose: `start` = (rotations, translations)),
+        in place.
 
         With the robust smoothness such a part is torn off and, having nothing to follow,
         would stay where it was while the body walks on; the paper's stiff graph dragged it
         along. This keeps the drag, without letting the part pull on the tracked body."""
         graph = self.graph
         support = self._node_support(state.estep)
-        before = graph.node_positions + self.translations
+        start_rotations, start_translations = start
+        before = graph.node_positions + start_translations
         after = graph.node_positions + state.translations
         for nodes, anchors in lost_parts(support, graph.edges):     # a few parts, not points
             if len(anchors) >= 3:
                 rotation, shift = weighted_rigid_fit(before[anchors], after[anchors])
             else:
                 rotation, shift = np.eye(3), (after[anchors] - before[anchors]).mean(axis=0)
-            state.rotations[nodes] = np.einsum('ij,njk->nik', rotation, self.rotations[nodes])
+            state.rotations[nodes] = np.einsum('ij,njk->nik', rotation, start_rotations[nodes])
             state.translations[nodes] = before[nodes] @ rotation.T + shift - graph.node_positions[nodes]
         state.points = self._contributions(state.rotations, state.translations).sum(axis=1)
 
+    def transforms_onto(self, points: np.ndarray) -> tuple:
+        """Node transforms (rotations (J, 3, 3), translations (J, 3)) that carry the rest
+        points onto `points` (M, 3) m, e.g. a pose predicted by a tracker: each node's
+        weighted rigid fit of the points it carries (its blend weights). Exact for a rigid
+        motion of the whole set; an approximation of a non-rigid one that EM refines."""
+        points = np.asarray(points, dtype=np.float64)
+        if points.shape != self.rest_points.shape or not np.isfinite(points).all():
+            raise ValueError(f'start points must be finite ({len(self.rest_points)}, 3), got {points.shape}')
+        rotations, centres = fit_weighted_segments(self.rest_points, points[None], self._blend.T)
+        rotations, centres = rotations[0], centres[0]               # y = R q + c
+        g = self.graph.node_positions
+        # the graph's form: y = R (q - g) + g + T, so T = c + R g - g
+        return rotations, centres + np.einsum('jik,jk->ji', rotations, g) - g
+
     # ----------------------------------------------------------------------------------
-    def register_frame(self, observed: np.ndarray) -> FrameResult:
-        """Register the current state to one frame's observed points (N, 3), metres."""
+    def register_frame(self, observed: np.ndarray, start_points: np.ndarray | None = None) -> FrameResult:
+        """Register one frame's observed points (N, 3), metres: EM from the previous frame's
+        state, or, with start_points (M, 3) (a predicted pose of the registered points,
+        e.g. the live skeleton fit of a newer frame than the last registered one), from the
+        node transforms that carry the rest points onto it (`transforms_onto`). A frame
+        that is empty or diverges leaves the state as it was."""
         p = self.params
         observed = np.asarray(observed, dtype=np.float64)
         if observed.ndim != 2 or observed.shape[1] != 3:
             raise ValueError(f'observed points must be (N, 3), got {observed.shape}')
+        start = (self.rotations.copy(), self.translations.copy()) if start_points is None \
+            else self.transforms_onto(start_points)
         observed = np.ascontiguousarray(observed[finite_rows(observed)])
         if len(observed) < p.min_points:
             return FrameResult(self.points.copy(), STATUS_EMPTY, float('nan'), 0, 0.0)
 
         view = ObservedView(observed) if p.visibility else None
-        state = self._run_em(observed, view, self.rotations.copy(), self.translations.copy())
+        state = self._run_em(observed, view, start[0].copy(), start[1].copy())
         if p.recapture and state.estep is not None:
             state = self._recapture(observed, view, state)
         if p.smoothness == 'robust' and state.estep is not None and np.isfinite(state.sigma2):
-            self._carry_unseen_parts(state)
+            self._carry_unseen_parts(state, start)
         rotations, translations, points, sigma2 = state.rotations, state.translations, state.points, state.sigma2
         estep, iterations, energies = state.estep, state.iterations, state.energies
         matched_fraction = estep.Np / len(observed) if estep is not None else 0.0

@@ -52,10 +52,19 @@ def fit_rigid_segments(rest: np.ndarray, frames: np.ndarray, labels: np.ndarray,
     [0, n_segments). Returns rotations (F, S, 3, 3) and translations (F, S, 3). Segments
     without points get the identity.
     """
+    return fit_weighted_segments(rest, frames, segment_matrix(labels, n_segments))
+
+
+def fit_weighted_segments(rest: np.ndarray, frames: np.ndarray, membership: sparse.spmatrix):
+    """argmin sum_m membership[s, m] |y_m^t - (R q_m + T)|^2 for every segment s and frame t:
+    the weighted rigid fit of each segment's points (soft membership, e.g. a deformation
+    node's blend weights). rest (M, 3), frames (F, M, 3), membership sparse (S, M) >= 0 ->
+    rotations (F, S, 3, 3), translations (F, S, 3); a segment without weight: identity."""
     F, M, _ = frames.shape
-    summer = segment_matrix(labels, n_segments)
+    summer = sparse.csr_matrix(membership)
+    n_segments = summer.shape[0]
     counts = np.asarray(summer.sum(axis=1)).ravel()
-    safe = np.maximum(counts, 1.0)
+    safe = np.where(counts > 0, counts, 1.0)      # (soft weights may sum below 1)
     rest_centres = (summer @ rest) / safe[:, None]                                # (S, 3)
     frame_centres = (summer @ frames.transpose(1, 0, 2).reshape(M, -1)).reshape(n_segments, F, 3)
     frame_centres = frame_centres.transpose(1, 0, 2) / safe[None, :, None]        # (F, S, 3)

@@ -7,6 +7,9 @@ Publishes   skeleton/description (std_msgs/String JSON, transient local): joint_
             skeleton/joints  (geometry_msgs/PoseArray, one pose per joint, input header)
             skeleton/markers (visualization_msgs/MarkerArray: SPHERE per joint, id = joint
             index; LINE_LIST of bones; input header)
+            skeleton/posed_points (PointCloud2, M points in the registered points' order,
+            input header): the learned model posed by LBS at each fitted camera frame;
+            the registration node starts its next frame from it (`live_start`)
 
 On a structure: Alg. 2 on the window's frames (found by stamp in a buffer of
 `buffer_size` frames, or among the previous structure's frames, which are kept: a growing
@@ -54,7 +57,8 @@ from ..params import joint_params_from_dict
 from .common import (LATCHED_QOS, STREAM_QOS, ParameterError, StampPairer, ThrottledLog,
                      declare_node_parameters, decode_or_warn, decode_registered_or_warn, release_freed_memory,
                      run_node)
-from .conversions import description_document, parse_structure, pose_array, skeleton_markers, stamp_ns
+from .conversions import (cloud_message, description_document, parse_structure, pose_array,
+                          skeleton_markers, stamp_ns)
 from .diagnostics import OK, WARN, NodeDiagnostics
 from .worker import RateMeter, Worker
 
@@ -74,6 +78,8 @@ class JointEstimationNode(Node):
         self.description_pub = self.create_publisher(String, 'skeleton/description', LATCHED_QOS)
         self.joints_pub = self.create_publisher(PoseArray, 'skeleton/joints', STREAM_QOS)
         self.markers_pub = self.create_publisher(MarkerArray, 'skeleton/markers', STREAM_QOS)
+        # the model posed at each fitted camera frame: the registration starts from it
+        self.posed_pub = self.create_publisher(PointCloud2, 'skeleton/posed_points', STREAM_QOS)
         self._lock = threading.Lock()
         self.rest, self.rest_stamp = None, None
         self.buffer = collections.OrderedDict()   # stamp ns -> (header, registered (M, 3), filtered (N, 3))
@@ -309,6 +315,9 @@ class JointEstimationNode(Node):
         self.live_fits[outcome] += 1
         self.live_ms.append(1000.0 * (time.perf_counter() - started))
         self._publish_joints(header, positions, parents)
+        posed = camera.posed_points()
+        if posed is not None:
+            self.posed_pub.publish(cloud_message(posed, header))
 
     def _live_failed(self, item, error) -> None:
         """item: (header, points) of the camera frame whose fit or publish raised."""

@@ -10,6 +10,9 @@ Subscribes  points            sensor_msgs/PointCloud2  sensor-data QoS (best eff
                               first window is learned (the joint node's Alg. 2 comes next)
                               or a skeleton is tracked; from then on Alg. 1 runs
                               registration_niceness nicer
+            skeleton/posed_points PointCloud2 (M points, from the joint node): the live fit's
+                              pose of a recent camera frame; with live_start the next frame
+                              is registered from it, not from the last registered frame
 Publishes   registered_points PointCloud2 (M points, fixed order, input header; ok frames only)
             filtered_points   PointCloud2 (the subject, preprocessed, input header; every decodable cloud)
             rest_points       PointCloud2 (float64, transient local; the rest pose Q, header of its cloud)
@@ -62,7 +65,7 @@ from ..depth_image import DepthDecodeError, depth_to_cloud
 from ..params import NODE_ONLY, registration_params_from_dict
 from ..pointcloud import CloudDecodeError, decode_xyz
 from .common import (LATCHED_QOS, SENSOR_QOS, STREAM_QOS, ParameterError, ThrottledLog, declare,
-                     declare_dataclass, release_freed_memory, run_node)
+                     declare_dataclass, decode_or_warn, release_freed_memory, run_node)
 from .conversions import cloud_message, stamp_ns
 from .diagnostics import OK, WARN, NodeDiagnostics
 from .registration_process import ChildProcessDied, RegistrationProcess, RestPoseProcess
@@ -107,6 +110,7 @@ class RegistrationNode(Node):
         if self.input not in ('cloud', 'depth_image'):
             raise ParameterError(f"parameter input must be 'cloud' or 'depth_image', got {self.input!r}")
         niceness = declare(self, SECTION, 'registration_niceness', NODE_ONLY[SECTION]['registration_niceness'])
+        self.live_start = declare(self, SECTION, 'live_start', NODE_ONLY[SECTION]['live_start'])
         try:
             (self.params, self.rest_params, self.preprocess_params,
              self.segmentation_params) = registration_params_from_dict(values)
@@ -123,6 +127,11 @@ class RegistrationNode(Node):
         self.create_subscription(String, 'skeleton/description', self._on_description, LATCHED_QOS)
         # no skeleton described yet: the camera stage works only for the registration (_observe)
         self._described = False
+        # the joint node's newest posed model (stamp ns, (M, 3)): where the next frame's
+        # registration starts (live_start); frames registered from it, for /diagnostics
+        self._posed = None
+        self.registered_from_live_pose = 0
+        self.create_subscription(PointCloud2, 'skeleton/posed_points', self._on_posed, STREAM_QOS)
         # set by the services, acted on by the camera stage before its next cloud
         self._background_reset_requested = False
         self._reset_requested = False
@@ -196,6 +205,32 @@ class RegistrationNode(Node):
             self._described = True      # no joint node will describe it: nothing to wait for
         self._on_skeleton(msg)
 
+    def _on_posed(self, msg: PointCloud2) -> None:
+        # the newest to arrive (one writer publishes in stamp order; after stamps went back
+        # a larger stamp is the older pose)
+        points = decode_or_warn(msg, self.log, 'skeleton/posed_points', np.float64)
+        if points is not None:
+            self._posed = (stamp_ns(msg.header), points)
+
+    def _live_start(self, stamp: int) -> np.ndarray | None:
+        """(M, 3) the joint node's newest posed model, where this frame's registration starts,
+        when it is of this rest pose, newer than the last registered frame and not newer than
+        this one (else None: from the last registered frame, as Alg. 1).
+
+        Why: once a skeleton is tracked the registration takes the newest camera frame, a
+        second or more after the last one it registered; a limb that moved 30 cm since is
+        beyond the E-step's reach, and frames that far apart take the most EM iterations.
+        The live fit of a frame or two before this one is a few centimetres off instead
+        (bench/README.md "Registration started from the live pose")."""
+        posed = self._posed
+        if not self.live_start or self.lossless or posed is None or self.rest_pose is None:
+            return None
+        posed_stamp, points = posed
+        newest_registered = self._registered_stamp if self._registered_stamp is not None else self._rest_stamp
+        if not newest_registered < posed_stamp <= stamp or points.shape != self.rest_pose.points.shape:
+            return None
+        return points
+
     def _on_description(self, msg: String) -> None:
         self._described = True
         self._on_skeleton(msg)
@@ -247,6 +282,7 @@ class RegistrationNode(Node):
     def _start_registration(self) -> None:
         self.partial_frames = 0
         self.rest_pose = None
+        self._rest_stamp = self._registered_stamp = None
         self.rest_pose_process.warm()
         self._somebody_at = time.monotonic()
 
@@ -313,6 +349,7 @@ class RegistrationNode(Node):
             'failed': camera['failed'] + registration['failed'], 'waiting': registration['waiting'],
             'queue_size': self.registrar.capacity, 'lossless': self.lossless,
             'registration_nice': self.registration_process.nice,
+            'registered_from_live_pose': self.registered_from_live_pose,
             # readers matched to both outputs (DDS drops what a volatile writer sends before)
             'outputs_matched': min(self.registered_pub.get_subscription_count(),
                                    self.filtered_pub.get_subscription_count()),
@@ -429,13 +466,14 @@ class RegistrationNode(Node):
                 self.log.warn('no_rest', f'no rest pose from this cloud: {error}')
                 return
             self.registration_process.install(NonRigidRegistration(rest_pose.points, self.params))
-            self.rest_pose = rest_pose
+            self.rest_pose, self._rest_stamp = rest_pose, stamp
             release_freed_memory()
             self.rest_pub.publish(cloud_message(self.rest_pose.points, frame.header, float64=True))
             self.get_logger().info(f'rest pose built from the cloud at {stamp * 1e-9:.3f} s '
                                    f'({len(self.rest_pose.points)} points, frame {frame.header.frame_id!r})')
+        start = self._live_start(stamp)
         try:
-            result = self.registration_process.register_frame(observed)
+            result = self.registration_process.register_frame(observed, start)
         except ChildProcessDied:
             if not self.context.ok():
                 return
@@ -450,6 +488,8 @@ class RegistrationNode(Node):
                           f'cloud at {stamp * 1e-9:.3f} s not registered ({result.status}: '
                           f'{len(observed)} points after preprocessing); holding the last pose')
             return
+        self._registered_stamp = stamp
+        self.registered_from_live_pose += start is not None
         self.registered_pub.publish(cloud_message(result.points, frame.header))
         if self.registrar.processed % 100 == 99:
             stats = self.registrar.stats()
