@@ -288,6 +288,14 @@ def test_registration_starts_from_the_newest_posed_model_of_the_joint_node(ros, 
     ros.wait(lambda: node._posed[1].shape[0] == len(expected[6]) - 1, what='the odd posed model')
     pub.publish(cloud(arm.clouds[6], int(arm.stamps_ns[7]) + 2 * DT))
     ros.wait(lambda: stamps_of(registered)[-1] == int(arm.stamps_ns[7]) + 2 * DT, what='one more frame')
+    # not finite: warned, ignored
+    broken = expected[6].copy()
+    broken[5] = np.nan
+    posed_pub.publish(cloud_message(broken, header(int(arm.stamps_ns[7]) + 3 * DT)))
+    ros.wait(lambda: node._posed[0] == int(arm.stamps_ns[7]) + 3 * DT, what='the broken posed model')
+    pub.publish(cloud(arm.clouds[5], int(arm.stamps_ns[7]) + 4 * DT))
+    ros.wait(lambda: stamps_of(registered)[-1] == int(arm.stamps_ns[7]) + 4 * DT, what='a frame after it')
+    assert any('posed_points with non-finite' in m for m in ros.warnings('registration_node'))
     assert node.registered_from_live_pose == 1 and ros.spinning()
 
 

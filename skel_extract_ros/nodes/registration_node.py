@@ -229,6 +229,9 @@ class RegistrationNode(Node):
         newest_registered = self._registered_stamp if self._registered_stamp is not None else self._rest_stamp
         if not newest_registered < posed_stamp <= stamp or points.shape != self.rest_pose.points.shape:
             return None
+        if not np.isfinite(points).all():
+            self.log.warn('posed', 'ignoring skeleton/posed_points with non-finite points')
+            return None
         return points
 
     def _on_description(self, msg: String) -> None:
