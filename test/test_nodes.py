@@ -254,8 +254,8 @@ def test_registration_node_registers_the_first_window_in_order_then_the_newest(r
 def test_registration_starts_from_the_newest_posed_model_of_the_joint_node(ros, arm):
     """live_start: a frame registered after a gap starts from skeleton/posed_points (the
     joint node's live fit of a frame in the gap), and lands where frame-by-frame
-    registration does; a posed model of another size, or not newer than the last
-    registered frame, is not used."""
+    registration does; a posed model of another size, with non-finite points (warned) or
+    not newer than the last registered frame is not used."""
     offline = SequenceRegistration(RegistrationParams(), RestPoseParams(n_points=600), PreprocessParams(),
                                    segmentation_params=SegmentationParams(enabled=False))
     expected = offline.register(list(arm.clouds))
@@ -436,7 +436,7 @@ def test_joint_estimation_node_live_camera_frames_do_not_wait_for_registration(r
     assert live_error.mean() < 0.85 * held_error.mean(), (live_error, held_error)
     assert node.live_fits['fitted'] == 11 and node.live.dropped == 0
     # every fitted camera frame's posed model (the registration's start), in the registered
-    # points' order: as close to the true points as the fit's joints are to the true joints
+    # points' order, closer to the frame's true points than the registered frame's are
     ros.wait(lambda: len(posed) == 11, what='the posed model of every fitted frame')
     assert stamps_of(posed) == [T0 + i * DT for i in range(13, 24)]
     posed_points = np.stack([decode_xyz(m) for m in posed])
