@@ -428,7 +428,7 @@ def _write_files(received: Received, out: Path) -> dict:
                                  description['rest_positions'], np.array(answered) * 1e-9,
                                  np.stack([received.joints[s] for s in answered]), description['frame_id'])
     (out / 'skeleton.json').write_text(json.dumps(document))
-    with_joints = [s for s in stamps_ns if s in received.joints and len(received.joints[s]) == n_joints]
+    with_joints = [s for s in answered if s in received.registered]
     positions = np.stack([received.joints[s] for s in with_joints])
     labels = np.asarray(received.structure['labels'])
     registered = np.stack([received.registered[s] for s in with_joints])

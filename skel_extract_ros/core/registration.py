@@ -651,11 +651,11 @@ class NonRigidRegistration:
         observed = np.asarray(observed, dtype=np.float64)
         if observed.ndim != 2 or observed.shape[1] != 3:
             raise ValueError(f'observed points must be (N, 3), got {observed.shape}')
-        start = (self.rotations.copy(), self.translations.copy()) if start_points is None \
-            else self.transforms_onto(start_points)
         observed = np.ascontiguousarray(observed[finite_rows(observed)])
         if len(observed) < p.min_points:
             return FrameResult(self.points.copy(), STATUS_EMPTY, float('nan'), 0, 0.0)
+        start = (self.rotations.copy(), self.translations.copy()) if start_points is None \
+            else self.transforms_onto(start_points)
 
         view = ObservedView(observed) if p.visibility else None
         state = self._run_em(observed, view, start[0].copy(), start[1].copy())
