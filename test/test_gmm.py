@@ -42,3 +42,22 @@ def test_given_candidates_give_the_same_statistics_and_tolerate_small_moves():
     # no candidate: everything is an outlier, no mass anywhere
     none = gmm_posteriors(observed, centroids, sigma2, 0.01, candidates=np.full((1000, 8), 400))
     assert none.Np == 0.0 and np.isfinite(none.nll)
+
+
+def test_nearest_centroids_are_the_k_nearest_within_the_radius():
+    """The k-d tree query (pykdtree) against brute force: the K nearest centroids, in order
+    of distance, M where fewer than K lie within the radius; float32 input as float64."""
+    rng = np.random.default_rng(2)
+    centroids = rng.uniform(0, 0.5, (500, 3))
+    observed = rng.uniform(-0.1, 0.6, (700, 3)).astype(np.float32)    # some far from every centroid
+    radius = 0.04
+    found = nearest_centroids(observed, centroids, 8, radius)
+    distances = np.linalg.norm(observed.astype(np.float64)[:, None] - centroids[None], axis=2)
+    order = np.argsort(distances, axis=1)[:, :8]
+    expected = np.where(np.take_along_axis(distances, order, axis=1) <= radius, order, len(centroids))
+    assert found.dtype == np.int64 and found.shape == (700, 8)
+    assert (found == expected).all()
+    assert (found == len(centroids)).any() and (found[:, 0] < len(centroids)).any()
+    # fewer centroids than K: the missing slots are M
+    few = nearest_centroids(observed, centroids[:3], 8)
+    assert few.shape == (700, 3) and (few < 3).all()

@@ -15,7 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
+from pykdtree.kdtree import KDTree
 
 
 @dataclass
@@ -56,9 +56,14 @@ def _query(observed, centroids, n_neighbours, radius):
     K = min(n_neighbours, M)
     # The k-d tree is over the centroids and rebuilt per call; its query cost does not grow
     # with sigma, unlike a fixed-radius search that visits every centroid in the ball.
-    # One worker: for a few thousand queries, thread start-up costs more than it saves.
-    distances, idx = cKDTree(centroids).query(observed, k=K, distance_upper_bound=radius)
-    return distances.reshape(N, K), idx.reshape(N, K)
+    # pykdtree, not scipy's cKDTree: the same neighbours (M and inf where none, as scipy),
+    # built and queried in 2.8 against 3.5 ms on one core for 2000 centroids and 2800
+    # observations, 1.4 ms on two (OpenMP; the nodes keep it to one: nodes/__init__.py),
+    # and this runs in every EM iteration.
+    centroids = np.ascontiguousarray(centroids, dtype=np.float64)
+    observed = np.ascontiguousarray(observed, dtype=np.float64)
+    distances, idx = KDTree(centroids).query(observed, k=K, distance_upper_bound=radius)
+    return distances.reshape(N, K), idx.reshape(N, K).astype(np.int64)
 
 
 def gmm_posteriors(observed: np.ndarray, centroids: np.ndarray, sigma2: float, omega: float,
