@@ -83,9 +83,11 @@ def gmm_posteriors(observed: np.ndarray, centroids: np.ndarray, sigma2: float, o
     else:
         idx = candidates
         valid = idx < M
-        d2 = np.sum((centroids[np.where(valid, idx, 0)] - observed[:, None, :]) ** 2, axis=2)
+        offsets = centroids[np.where(valid, idx, 0)] - observed[:, None, :]
+        # einsum, not a sum over the last axis of 3: a reduction along a short axis is slow
+        d2 = np.einsum('nki,nki->nk', offsets, offsets)
         found = valid & (d2 <= radius ** 2)
-    gauss = np.where(found, np.exp(-np.where(found, d2, 0.0) / (2.0 * sigma2)), 0.0)
+    gauss = np.exp(d2 * (-0.5 / sigma2)) * found
     row_sum = gauss.sum(axis=1)
     c = (2.0 * np.pi * sigma2) ** 1.5 * omega * M / ((1.0 - omega) * N)
     # with omega = 0 an observation out of every centroid's reach has 0 / 0: it has no mass
@@ -97,5 +99,5 @@ def gmm_posteriors(observed: np.ndarray, centroids: np.ndarray, sigma2: float, o
                                minlength=M + 1)[:M] for axis in range(3)], axis=1)
     likelihood = (1.0 - omega) / M * (2.0 * np.pi * sigma2) ** -1.5 * row_sum + omega / N
     nll = float(-np.sum(np.log(likelihood[likelihood > 0])))
-    weighted_sq = float(np.sum(posteriors.sum(axis=1) * np.sum(observed ** 2, axis=1)))
+    weighted_sq = float(posteriors.sum(axis=1) @ np.einsum('ni,ni->n', observed, observed))
     return GMMStatistics(P1, Px, float(P1.sum()), nll, weighted_sq)
