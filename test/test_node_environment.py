@@ -1,8 +1,11 @@
-"""The node processes run their thread pools on one thread (skel_extract_ros/nodes/__init__.py):
-the threads a fresh interpreter has after numpy's import and a pykdtree query."""
+"""The environment of a node process (skel_extract_ros/nodes/__init__.py): thread pools on one
+thread (the threads a fresh interpreter has after numpy's import and a pykdtree query) and
+the Fast DDS profile with the large shared-memory segment, unless the environment says
+otherwise."""
 import os
 import subprocess
 import sys
+import xml.etree.ElementTree as ElementTree
 
 import pytest
 
@@ -16,13 +19,14 @@ from pykdtree.kdtree import KDTree
 points = np.random.default_rng(0).uniform(size=(20000, 3))
 KDTree(points).query(points, k=8)
 print(start, len(os.listdir('/proc/self/task')), os.environ.get('OMP_NUM_THREADS'),
-      os.environ.get('OPENBLAS_NUM_THREADS'))
+      os.environ.get('OPENBLAS_NUM_THREADS'), os.environ.get('FASTRTPS_DEFAULT_PROFILES_FILE'))
 '''
-LIMITS = ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS')
+SETTINGS = ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'FASTRTPS_DEFAULT_PROFILES_FILE',
+            'FASTDDS_DEFAULT_PROFILES_FILE')
 
 
 def _probe(mode: str, **env) -> list:
-    environment = {k: v for k, v in os.environ.items() if k not in LIMITS}
+    environment = {k: v for k, v in os.environ.items() if k not in SETTINGS}
     environment.update(env)
     return subprocess.run([sys.executable, '-c', PROBE, mode], capture_output=True, text=True, check=True,
                           env=environment).stdout.split()
@@ -30,13 +34,29 @@ def _probe(mode: str, **env) -> list:
 
 @pytest.mark.skipif(not os.path.isdir('/proc/self/task'), reason='counts threads in /proc')
 def test_node_processes_start_no_worker_threads():
-    start, end, omp, openblas = _probe('nodes')
+    start, end, omp, openblas, _ = _probe('nodes')
     assert (omp, openblas) == ('1', '1') and end == start
     if (os.cpu_count() or 1) > 1:
         # without the limits the probe does see the pools' threads
-        start, end, omp, openblas = _probe('plain')
-        assert (omp, openblas) == ('None', 'None') and int(end) > int(start)
+        start, end, omp, openblas, profile = _probe('plain')
+        assert (omp, openblas, profile) == ('None', 'None', 'None') and int(end) > int(start)
 
 
-def test_explicit_limits_are_kept():
-    assert _probe('nodes', OMP_NUM_THREADS='2', OPENBLAS_NUM_THREADS='3')[2:] == ['2', '3']
+def test_node_processes_load_the_large_shared_memory_profile():
+    profile = _probe('nodes')[4]
+    root = ElementTree.parse(profile).getroot()
+    namespace = {'dds': 'http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles'}
+    shm = [d for d in root.iterfind('dds:transport_descriptors/dds:transport_descriptor', namespace)
+           if d.findtext('dds:type', namespaces=namespace) == 'SHM']
+    segment = int(shm[0].findtext('dds:segment_size', namespaces=namespace)) if len(shm) == 1 else 0
+    # three 320x240 clouds (1.2 MB each) fit; each node maps it, so it stays small
+    assert 3 * 320 * 240 * 16 <= segment <= 8 * 2 ** 20
+    participant = root.find('dds:participant', namespace)
+    assert participant.get('is_default_profile') == 'true'
+
+
+def test_explicit_settings_are_kept():
+    assert _probe('nodes', OMP_NUM_THREADS='2', OPENBLAS_NUM_THREADS='3',
+                  FASTRTPS_DEFAULT_PROFILES_FILE='/elsewhere.xml')[2:] == ['2', '3', '/elsewhere.xml']
+    # a Fast DDS 3 user's profile is not shadowed by ours
+    assert _probe('nodes', FASTDDS_DEFAULT_PROFILES_FILE='/elsewhere.xml')[4] == 'None'
