@@ -14,12 +14,10 @@ setup(
     name=PACKAGE_NAME,
     version='0.1.0',
     packages=find_packages(exclude=['test', 'test.*']),
-    # the nodes' Fast DDS profile, found next to skel_extract_ros/nodes/__init__.py
-    package_data={PACKAGE_NAME: ['nodes/fastdds_large_messages.xml']},
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/' + PACKAGE_NAME]),
         ('share/' + PACKAGE_NAME, ['package.xml']),
-        ('share/' + PACKAGE_NAME + '/params', glob('params/*.yaml')),
+        ('share/' + PACKAGE_NAME + '/params', glob('params/*.yaml') + glob('params/*.xml')),
         ('share/' + PACKAGE_NAME + '/launch', glob('launch/*.launch.py')),
     ],
     install_requires=[
@@ -39,7 +37,7 @@ setup(
         # benchmark-only peers: Coherent Point Drift implementations and Dem Bones (SSDR)
         'bench': ['rustcpd==4.0.0', 'pycpd==2.0.0', 'py-dem-bones==0.13.1'],
     },
-    zip_safe=False,   # the nodes read their Fast DDS profile from the installed files
+    zip_safe=True,
     maintainer='skel_extract_ros developers',
     maintainer_email='skel-extract@example.com',
     description='Template-free articulated skeleton extraction from single depth camera point clouds.',

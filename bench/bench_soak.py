@@ -25,7 +25,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from skel_extract_ros.replay import _start_nodes, _stop_nodes  # noqa: E402
+from skel_extract_ros.replay import _start_nodes, _stop_nodes, use_large_message_profile  # noqa: E402
 
 OUTPUTS = ('filtered_points', 'registered_points', 'skeleton/joints')
 
@@ -84,6 +84,7 @@ def main() -> int:
     period_ns = (stamps[-1] - stamps[0]) // (len(stamps) - 1)
     pass_ns = stamps[-1] - stamps[0] + period_ns
 
+    use_large_message_profile()        # publish as a configured camera driver, as replay does
     context = rclpy.Context()
     # Ctrl-C ends the soak through the finally below (the nodes stopped as a user would)
     rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)

@@ -24,17 +24,29 @@ from .core.structure import StructureParams
 DEFAULT_PARAMS_FILE = Path(__file__).resolve().parent.parent / 'params' / 'skel_extract.yaml'
 
 
-def default_params_file() -> Path | None:
-    """The packaged parameter file: the source checkout's, else the installed share/ copy
-    (colcon / ROS installs), else None (the code defaults are the same values)."""
-    if DEFAULT_PARAMS_FILE.is_file():
-        return DEFAULT_PARAMS_FILE
+def packaged_file(name: str) -> Path | None:
+    """A file of the package's params/ directory: the source checkout's, else the installed
+    share/ copy (colcon / ROS installs), else None."""
+    source = DEFAULT_PARAMS_FILE.with_name(name)
+    if source.is_file():
+        return source
     try:
         from ament_index_python.packages import PackageNotFoundError, get_package_share_directory
-        installed = Path(get_package_share_directory('skel_extract_ros')) / 'params' / 'skel_extract.yaml'
+        installed = Path(get_package_share_directory('skel_extract_ros')) / 'params' / name
         return installed if installed.is_file() else None
     except (ImportError, PackageNotFoundError, ValueError):
         return None
+
+
+def default_params_file() -> Path | None:
+    """The packaged parameter file, or None (the code defaults are the same values)."""
+    return packaged_file(DEFAULT_PARAMS_FILE.name)
+
+
+def fastdds_profile_file() -> Path | None:
+    """The packaged Fast DDS profile with a 4 MB shared-memory segment, for a publisher of
+    large clouds (README, "Running against a live camera")."""
+    return packaged_file('fastdds_large_messages.xml')
 
 
 class ParamsError(ValueError):

@@ -84,6 +84,21 @@ def _ros_type(name: str):
     return getattr(module, message)
 
 
+def use_large_message_profile() -> None:
+    """Publish like a camera driver configured as README says: Fast DDS's shared-memory
+    segment is 512 kB by default, and a third of 1.2 MB clouds at 30 Hz (600 kB 640x480
+    depth images too) never reached the node on a loaded 2-core machine; the publisher's
+    segment is what counts (bench/README.md, "Large clouds over shared memory"). Sets
+    FASTRTPS_DEFAULT_PROFILES_FILE to the packaged 4 MB profile unless it or
+    FASTDDS_DEFAULT_PROFILES_FILE is set; call before rclpy.init (Fast DDS reads it once),
+    the nodes started after inherit it."""
+    from .params import fastdds_profile_file
+    profile = fastdds_profile_file()
+    if profile is not None and not (os.environ.get('FASTRTPS_DEFAULT_PROFILES_FILE')
+                                    or os.environ.get('FASTDDS_DEFAULT_PROFILES_FILE')):
+        os.environ['FASTRTPS_DEFAULT_PROFILES_FILE'] = str(profile)
+
+
 def _start_nodes(params_file: Path | None, namespace: str | None, logs: Path, depth_image: bool = False,
                  lossless: bool = True) -> dict:
     logs.mkdir(parents=True, exist_ok=True)
@@ -255,6 +270,7 @@ def replay(input_path, out, rate: float = 1.0, topic: str | None = None, params_
                  for _t, raw in _raw_messages(input_path, camera_info_topic(topic))]
         info_stamps = np.array([stamp for stamp, _ in infos])
     received = Received()
+    use_large_message_profile()
     context = rclpy.Context()
     rclpy.init(context=context)
     processes = _start_nodes(params_file, namespace, out / 'logs', depth_image, lossless=not realtime)

@@ -1,7 +1,7 @@
-"""The environment of a node process (skel_extract_ros/nodes/__init__.py): thread pools on one
-thread (the threads a fresh interpreter has after numpy's import and a pykdtree query) and
-the Fast DDS profile with the large shared-memory segment, unless the environment says
-otherwise."""
+"""The environment of the processes: a node process runs its thread pools on one thread (the
+threads a fresh interpreter has after numpy's import and a pykdtree query), and a replay
+publishes with the packaged Fast DDS profile (a shared-memory segment for large clouds),
+unless the environment says otherwise."""
 import os
 import subprocess
 import sys
@@ -18,6 +18,9 @@ import numpy as np
 from pykdtree.kdtree import KDTree
 points = np.random.default_rng(0).uniform(size=(20000, 3))
 KDTree(points).query(points, k=8)
+if sys.argv[1] == 'replay':
+    from skel_extract_ros.replay import use_large_message_profile
+    use_large_message_profile()
 print(start, len(os.listdir('/proc/self/task')), os.environ.get('OMP_NUM_THREADS'),
       os.environ.get('OPENBLAS_NUM_THREADS'), os.environ.get('FASTRTPS_DEFAULT_PROFILES_FILE'))
 '''
@@ -38,25 +41,25 @@ def test_node_processes_start_no_worker_threads():
     assert (omp, openblas) == ('1', '1') and end == start
     if (os.cpu_count() or 1) > 1:
         # without the limits the probe does see the pools' threads
-        start, end, omp, openblas, profile = _probe('plain')
-        assert (omp, openblas, profile) == ('None', 'None', 'None') and int(end) > int(start)
+        start, end, omp, openblas, _ = _probe('plain')
+        assert (omp, openblas) == ('None', 'None') and int(end) > int(start)
 
 
-def test_node_processes_load_the_large_shared_memory_profile():
-    profile = _probe('nodes')[4]
+def test_explicit_thread_settings_are_kept():
+    assert _probe('nodes', OMP_NUM_THREADS='2', OPENBLAS_NUM_THREADS='3')[2:4] == ['2', '3']
+
+
+def test_replay_publishes_with_the_large_shared_memory_profile():
+    profile = _probe('replay')[4]
     root = ElementTree.parse(profile).getroot()
     namespace = {'dds': 'http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles'}
     shm = [d for d in root.iterfind('dds:transport_descriptors/dds:transport_descriptor', namespace)
            if d.findtext('dds:type', namespaces=namespace) == 'SHM']
     segment = int(shm[0].findtext('dds:segment_size', namespaces=namespace)) if len(shm) == 1 else 0
-    # three 320x240 clouds (1.2 MB each) fit; each node maps it, so it stays small
+    # three 320x240 clouds (1.2 MB each) fit; every process that uses it maps it, so it stays small
     assert 3 * 320 * 240 * 16 <= segment <= 8 * 2 ** 20
-    participant = root.find('dds:participant', namespace)
-    assert participant.get('is_default_profile') == 'true'
-
-
-def test_explicit_settings_are_kept():
-    assert _probe('nodes', OMP_NUM_THREADS='2', OPENBLAS_NUM_THREADS='3',
-                  FASTRTPS_DEFAULT_PROFILES_FILE='/elsewhere.xml')[2:] == ['2', '3', '/elsewhere.xml']
-    # a Fast DDS 3 user's profile is not shadowed by ours
-    assert _probe('nodes', FASTDDS_DEFAULT_PROFILES_FILE='/elsewhere.xml')[4] == 'None'
+    assert root.find('dds:participant', namespace).get('is_default_profile') == 'true'
+    # a profile of the user's own (Fast DDS 2 or 3 variable) is kept
+    assert _probe('replay', FASTRTPS_DEFAULT_PROFILES_FILE='/elsewhere.xml')[4] == '/elsewhere.xml'
+    assert _probe('replay', FASTDDS_DEFAULT_PROFILES_FILE='/elsewhere.xml')[4] == 'None'
+    assert _probe('nodes')[4] == 'None'     # the nodes' side does not need it
