@@ -32,8 +32,17 @@ class Harness:
         self.received = {}
         self._lock = threading.Lock()
         self.logs = self.listen('/rosout', Log, QoSProfile(depth=1000))
-        self._thread = threading.Thread(target=self.executor.spin, daemon=True)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._spin, daemon=True)
         self._thread.start()
+
+    def _spin(self):
+        # spin_once in a loop, not executor.spin(): close() ends this loop before shutting the
+        # executor down. Jazzy's Executor.shutdown() destroys its guard condition without
+        # waiting for the callbacks in flight, and one of them then triggers it (rclpy
+        # InvalidHandle in the spin thread; seen under load)
+        while not self._stop.is_set() and self.context.ok():
+            self.executor.spin_once(timeout_sec=0.05)
 
     def add(self, node_class, **kwargs):
         node = node_class(context=self.context, **kwargs)
@@ -78,6 +87,8 @@ class Harness:
         return future.result()
 
     def close(self):
+        self._stop.set()
+        self._thread.join(timeout=10.0)
         self.executor.shutdown()
         for node in self.nodes:
             node.destroy_node()
