@@ -93,7 +93,9 @@ def test_the_rest_pose_is_built_in_a_warm_child_that_ends_with_it(human_clean):
     assert builder._child is child                              # no rest pose: kept for the next frame
     here, there = RestPose.from_points(observed, params), builder.build(observed, params)
     np.testing.assert_array_equal(there.points, here.points)     # the same deterministic steps
-    assert builder._child is None and child._process.poll() == 0     # ended with its rest pose
+    assert builder._child is None                               # ended with its rest pose,
+    child._process.wait(timeout=30)                             # in the background: reaped, exit 0
+    assert child._process.returncode == 0
     there = builder.build(observed, params)                      # a new child when asked again
     np.testing.assert_array_equal(there.points, here.points)
     builder.close()

