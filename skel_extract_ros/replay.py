@@ -459,7 +459,8 @@ def _write_files(received: Received, out: Path) -> dict:
 
 def _camera_delivery(received: Received, streamed_s: float) -> dict:
     """What a camera user got: frames published, frames with joints (and their rate over the
-    streaming time), frames without, and the latency cloud published -> joints received,
+    streaming time), frames without, the seconds from the first camera frame to the first
+    skeleton/description (NaN without one), and the latency cloud published -> joints received,
     median / p95 in ms, over the live frames: those published once the skeleton existed (the
     first skeleton/description received). The frames before it that got joints (the
     structure's window and the learning window's other registered frames, which Alg. 2 and
@@ -469,7 +470,9 @@ def _camera_delivery(received: Received, streamed_s: float) -> dict:
     tracking_from = received.description_at
     live = ([s for s in with_joints if published[s] >= tracking_from] if tracking_from is not None else [])
     latency = [1000 * (received.joints_at[s] - published[s]) for s in live]
-    return {'published': len(published), 'with_joints': len(with_joints),
+    first_skeleton_s = (tracking_from - min(published.values())
+                        if tracking_from is not None and published else float('nan'))
+    return {'published': len(published), 'with_joints': len(with_joints), 'first_skeleton_s': first_skeleton_s,
             'without_joints': len(published) - len(with_joints),
             'joints_hz': len(with_joints) / streamed_s if streamed_s > 0 else float('nan'),
             'live_frames': len(live),

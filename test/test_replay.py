@@ -80,6 +80,11 @@ def test_live_at_camera_rate_on_a_room_bag(tmp_path):
     # registered in order, Alg. 1 and 2) took 13-18 s on this machine with one or both cores
     # kept busy by another process; a fresh-clone CI run was slower still
     assert seconds > 10.0 and abs(camera_hz - 30.0) < 1.5
+    # the first skeleton's time, from the first camera frame: learning, then tracking to the
+    # last of the 1 350 frames (45 s at 30 Hz)
+    first = re.search(r'first skeleton ([\d.]+) s after the first camera frame', done.stdout)
+    assert first and float(first[1]) > 1.0, done.stdout
+    assert abs(float(first[1]) + seconds - 1349 / 30) < 1.5, done.stdout     # 2.4 + 42.6 s measured
     # joints for a third of the camera frames at least, two orders of magnitude above the
     # registration's rate once tracking (well under 1 Hz): the live path does not wait for it.
     # 29.0 Hz of 30 with one core kept busy by another process, 24.2 Hz with both (6-10
