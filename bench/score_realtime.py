@@ -69,36 +69,51 @@ def looped(gt: GroundTruth, until_s: float) -> tuple:
     return dataclasses.replace(gt, **fields), pass_s
 
 
+def score(bag: Path, out: Path, from_pass: int = 3) -> dict:
+    """The live joints and registered frames of a replay in `out` against the bag's ground
+    truth, repeated for each pass: {'all' / 'later': JointReport or None (every frame with
+    joints / from pass `from_pass` on), 'nearest_cm': (median, p95) of each live joint's
+    distance to its nearest true joint, 'registration': (frames, frames from the pass,
+    mean cm, mean cm from the pass)}."""
+    pred = live_joints(out / 'output.mcap')
+    gt, pass_s = looped(GroundTruth.load(bag / 'gt.npz'), float(pred.stamps.max()))
+    later = pred.stamps >= gt.stamps[0] + from_pass * pass_s
+    result = {}
+    for name, chosen in (('all', np.ones(len(pred.stamps), bool)), ('later', later)):
+        part = dataclasses.replace(pred, stamps=pred.stamps[chosen], positions=pred.positions[chosen])
+        result[name] = (len(part.stamps), evaluate_joints(part, gt)) if chosen.any() else None
+    _, gt_index = match_frames(pred.stamps, gt.stamps)
+    nearest = np.linalg.norm(pred.positions[:, :, None, :] - gt.joints[gt_index][:, None, :, :], axis=-1).min(axis=2)
+    result['nearest_cm'] = (100 * float(np.median(nearest)), 100 * float(np.percentile(nearest, 95)))
+    registered = np.load(out / 'registered.npz')
+    tracking = registered['stamps'] >= gt.stamps[0] + from_pass * pass_s
+    scores = evaluate_registration(registered['points'], registered['stamps'], gt)
+    per_frame = np.asarray(scores['per_frame_error_m'])
+    result['registration'] = (len(per_frame), int(tracking.sum()), 100 * scores['mean_error_m'],
+                              100 * per_frame[-tracking.sum():].mean() if tracking.any() else float('nan'))
+    return result
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('bag', type=Path)
     parser.add_argument('out', type=Path)
     parser.add_argument('--from-pass', type=int, default=3)
     args = parser.parse_args(argv)
-    pred = live_joints(args.out / 'output.mcap')
-    gt, pass_s = looped(GroundTruth.load(args.bag / 'gt.npz'), float(pred.stamps.max()))
-    later = pred.stamps >= gt.stamps[0] + args.from_pass * pass_s
-    for name, chosen in (('every frame with joints', np.ones(len(pred.stamps), bool)),
-                         (f'from pass {args.from_pass}', later)):
-        if not chosen.any():
+    result = score(args.bag, args.out, args.from_pass)
+    for key, name in (('all', 'every frame with joints'), ('later', f'from pass {args.from_pass}')):
+        if result[key] is None:
             print(f'{name}: no frame')
             continue
-        part = dataclasses.replace(pred, stamps=pred.stamps[chosen], positions=pred.positions[chosen])
-        report = evaluate_joints(part, gt)
-        print(f'{name}: {chosen.sum()} frames, {report.n_predicted} joints, {report.n_matched} matched, recall '
+        frames, report = result[key]
+        print(f'{name}: {frames} frames, {report.n_predicted} joints, {report.n_matched} matched, recall '
               f'{report.recall:.2f}, articulated recall {report.articulated_recall:.2f} of {report.n_articulated}, '
               f'precision {report.precision:.2f}, mean {100 * report.mean_error_m:.1f} cm')
-    _, gt_index = match_frames(pred.stamps, gt.stamps)
-    nearest = np.linalg.norm(pred.positions[:, :, None, :] - gt.joints[gt_index][:, None, :, :], axis=-1).min(axis=2)
-    print(f'distance of each live joint to its nearest true joint: median {100 * np.median(nearest):.1f} cm, '
-          f'p95 {100 * np.percentile(nearest, 95):.1f} cm')
-    registered = np.load(args.out / 'registered.npz')
-    tracking = registered['stamps'] >= gt.stamps[0] + args.from_pass * pass_s
-    scores = evaluate_registration(registered['points'], registered['stamps'], gt)
-    per_frame = np.asarray(scores['per_frame_error_m'])
-    print(f'registration: {len(per_frame)} frames ({tracking.sum()} from pass {args.from_pass}), mean '
-          f'{100 * scores["mean_error_m"]:.1f} cm, from pass {args.from_pass} mean '
-          f'{100 * per_frame[-tracking.sum():].mean() if tracking.any() else float("nan"):.1f} cm')
+    median, p95 = result['nearest_cm']
+    print(f'distance of each live joint to its nearest true joint: median {median:.1f} cm, p95 {p95:.1f} cm')
+    frames, later_frames, mean, later_mean = result['registration']
+    print(f'registration: {frames} frames ({later_frames} from pass {args.from_pass}), mean '
+          f'{mean:.1f} cm, from pass {args.from_pass} mean {later_mean:.1f} cm')
     return 0
 
 

@@ -296,7 +296,8 @@ def _cmd_replay(args) -> int:
                   f'({values["n"]} frames)')
     failed = {name: code for name, code in summary['exit_codes'].items() if code != 0}
     if failed:
-        raise UserError(f'node(s) did not shut down cleanly: {failed} (see {out / "logs"})')
+        raise UserError(f'node(s) did not shut down cleanly: {failed} (see {out / "logs"}; a node killed '
+                        'after ignoring Ctrl-C for 20 s, code -9, wrote its threads\' stacks there)')
     return 0
 
 

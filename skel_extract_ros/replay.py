@@ -123,7 +123,9 @@ def _start_nodes(params_file: Path | None, namespace: str | None, logs: Path, de
 
 
 def _stop_nodes(processes: dict) -> dict:
-    """SIGINT (Ctrl-C) every node, as a user would; returns {name: exit code}."""
+    """SIGINT (Ctrl-C) every node, as a user would; returns {name: exit code}. A node still
+    running 20 s later is asked for its threads' stacks (SIGUSR1: into its log, see
+    nodes.common.run_node), then killed (exit code -9)."""
     for process, _ in processes.values():
         if process.poll() is None:
             process.send_signal(signal.SIGINT)
@@ -132,6 +134,8 @@ def _stop_nodes(processes: dict) -> dict:
         try:
             codes[name] = process.wait(timeout=20)
         except subprocess.TimeoutExpired:
+            process.send_signal(signal.SIGUSR1)
+            time.sleep(1.0)
             process.kill()
             codes[name] = process.wait()
         log.close()

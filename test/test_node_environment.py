@@ -63,3 +63,35 @@ def test_replay_publishes_with_the_large_shared_memory_profile():
     assert _probe('replay', FASTRTPS_DEFAULT_PROFILES_FILE='/elsewhere.xml')[4] == '/elsewhere.xml'
     assert _probe('replay', FASTDDS_DEFAULT_PROFILES_FILE='/elsewhere.xml')[4] == 'None'
     assert _probe('nodes')[4] == 'None'     # the nodes' side does not need it
+
+
+def test_a_node_writes_its_threads_stacks_on_sigusr1_and_goes_on(tmp_path):
+    """What a node that does not end or answer is doing: SIGUSR1 puts every thread's stack
+    in its log (replay sends it before killing a node that ignored Ctrl-C); the node keeps
+    running and still ends cleanly on Ctrl-C."""
+    import signal
+    import time
+    log_path = tmp_path / 'accumulator.log'
+    environment = dict(os.environ, ROS_DOMAIN_ID=str(100 + (os.getpid() + 91) % 100),
+                       ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', PYTHONUNBUFFERED='1')
+    with open(log_path, 'w') as log:
+        node = subprocess.Popen([sys.executable, '-m', 'skel_extract_ros.nodes.accumulator_node'],
+                                stdout=log, stderr=subprocess.STDOUT, env=environment)
+    try:
+        def wait_for(text, what):
+            deadline = time.monotonic() + 60
+            while text not in log_path.read_text():
+                assert node.poll() is None, log_path.read_text()
+                assert time.monotonic() < deadline, f'no {what}: {log_path.read_text()[-2000:]}'
+                time.sleep(0.1)
+        wait_for('waiting for registered_points', 'start-up line')
+        node.send_signal(signal.SIGUSR1)
+        wait_for('run_node', 'stack of the main thread')       # spinning, called from run_node
+        assert 'Current thread' in log_path.read_text() or 'Thread 0x' in log_path.read_text()
+        time.sleep(0.5)
+        assert node.poll() is None                                 # it goes on
+        node.send_signal(signal.SIGINT)
+        assert node.wait(timeout=20) == 0
+    finally:
+        if node.poll() is None:
+            node.kill()

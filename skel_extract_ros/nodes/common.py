@@ -166,12 +166,18 @@ def release_freed_memory() -> None:
 
 def run_node(node_factory, args=None) -> int:
     """The demo_nodes_py main: spin until Ctrl-C or shutdown, no traceback. Parameter
-    errors end the node with one line and exit code 2."""
+    errors end the node with one line and exit code 2. SIGUSR1 writes every thread's
+    stack to stderr (the node's log) and the node goes on: what a node that does not end
+    or answer is doing (`skel-extract replay` sends it before killing a node that did not
+    end on Ctrl-C)."""
+    import faulthandler
+    import signal
     import sys
 
     import rclpy
     from rclpy.executors import ExternalShutdownException
 
+    faulthandler.register(signal.SIGUSR1, all_threads=True)
     rclpy.init(args=args)
     node = None
     try:

@@ -1,0 +1,122 @@
+"""The installed nodes driven like a camera on real motion in the room: the live targets of
+the camera-rate issue (rate, latency, first skeleton) and the live joints' accuracy, end to end.
+
+    python bench/bench_realtime.py [--only walk_normal,cow] [--loop 10] [--window 10]
+                                   [--runs 1] [--human] [--work DIR]
+
+For each clip (default: the five of bench/README.md's node tables: walk_normal, run_normal,
+cow, wave-both-hands_active, wave-left-hand_normal; `--only` picks among every clip of
+../shared/data as bench_real_motion.py does) 90 frames in the room, rendered as 320x240 depth
+images at 30 Hz (`simulate --scene room --depth-image`, kept in --work); then `skel-extract
+replay --realtime --loop N` as a user runs it, with the accumulator's `window_size` set to
+`--window` (a 3 s bag played N times: a 60-frame window would leave a short tracking time).
+`--human` adds the built-in human in the room as 1.2 MB clouds, 300 frames (10 s), defaults
+(the 60-frame window), played `--loop` times.
+
+Printed per run: joints once tracking (Hz, of the camera's), latency cloud -> joints median
+/ p95 (ms), the first skeleton (s after the first camera frame), frames registered once
+tracking and the registration's error from pass 3 (cm), each live joint's distance to its
+nearest true joint from pass 3 (median / p95, cm), as bench/score_realtime.py scores them.
+The walker jumps back to the start of the walk at each pass. Nothing else may run while it
+measures: every number is a time on a shared 2-core machine. The nodes join the ROS domain
+of the environment: give the bench one of its own (ROS_DOMAIN_ID, and
+ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST).
+"""
+from __future__ import annotations
+
+import argparse
+import re
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / 'bench'))
+
+from bench_real_motion import CLI, subjects  # noqa: E402
+from score_realtime import score  # noqa: E402
+
+DEFAULT_CLIPS = ('walk_normal', 'run_normal', 'cow', 'wave-both-hands_active', 'wave-left-hand_normal')
+LINES = {
+    'first_s': re.compile(r'first skeleton ([\d.]+) s after the first camera frame'),
+    'latency': re.compile(r'latency cloud -> joints median (\d+) ms, p95 (\d+) ms'),
+    'tracking': re.compile(r'once tracking \(([\d.]+) s\): (\d+) of (\d+) camera frames got joints '
+                           r'\(([\d.]+) Hz of ([\d.]+) Hz\)'),
+}
+
+
+def bag_for(name: str, source_args: list, work: Path, human: bool = False) -> Path:
+    """The room bag of a clip (or of the built-in human), simulated once into `work`."""
+    bag = work / (f'{name}_room_clouds' if human else f'{name}_room_depth')
+    if not (bag / 'gt.npz').is_file():
+        extra = ['--frames', '300'] if human else ['--frames', '90', '--depth-image']
+        done = subprocess.run([CLI, 'simulate', *source_args, *extra, '--scene', 'room', '--out', str(bag)],
+                              capture_output=True, text=True)
+        if done.returncode != 0:
+            raise RuntimeError(f'simulate {name}: {done.stderr.strip()[-300:]}')
+    return bag
+
+
+def replay_row(bag: Path, out: Path, loop: int, params: Path | None) -> dict:
+    """`replay --realtime --loop` on `bag` into `out` (replaced), its printed figures and the scores."""
+    subprocess.run(['rm', '-rf', str(out)], check=True)
+    command = [CLI, 'replay', str(bag), '--out', str(out), '--realtime', '--loop', str(loop)]
+    if params is not None:
+        command += ['--params', str(params)]
+    done = subprocess.run(command, capture_output=True, text=True)
+    if done.returncode != 0:
+        raise RuntimeError(f'replay {bag.name}: {done.stderr.strip()[-300:]}')
+    found = {key: pattern.search(done.stdout) for key, pattern in LINES.items()}
+    if found['tracking'] is None:
+        raise RuntimeError(f'replay {bag.name}: no skeleton was tracked\n{done.stdout[-600:]}')
+    scores = score(bag, out)
+    return {'first_s': float(found['first_s'][1]),
+            'latency_ms': (int(found['latency'][1]), int(found['latency'][2])),
+            'joints_hz': float(found['tracking'][4]), 'camera_hz': float(found['tracking'][5]),
+            'registered_later': scores['registration'][1], 'registration_cm': scores['registration'][3],
+            'nearest_cm': scores['nearest_cm']}
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('--only', default=','.join(DEFAULT_CLIPS),
+                        help='clips (substrings of their names; default: %(default)s)')
+    parser.add_argument('--loop', type=int, default=10, help='passes over each bag')
+    parser.add_argument('--window', type=int, default=10, help="the accumulator's window_size for the clips")
+    parser.add_argument('--runs', type=int, default=1, help='runs of each bag')
+    parser.add_argument('--human', action='store_true', help='also the built-in human as 1.2 MB clouds, defaults')
+    parser.add_argument('--work', type=Path)
+    args = parser.parse_args(argv)
+    work = args.work or Path(tempfile.mkdtemp(prefix='bench_realtime_'))
+    work.mkdir(parents=True, exist_ok=True)
+    window = work / f'window_{args.window}.yaml'
+    window.write_text(f'accumulator_node:\n  ros__parameters:\n    window_size: {args.window}\n')
+    rows = [(name, source_args, window, False)
+            for name, source_args in subjects([name for name in args.only.split(',') if name])
+            if name != 'samba']                                  # a mesh sequence: no joints to track
+    if args.human:
+        rows.append(('human', ['--subject', 'human'], None, True))
+    print(f'replay --realtime --loop {args.loop}; clips: depth images, window_size {args.window}; work {work}\n')
+    print('| bag | run | joints once tracking (Hz of camera) | latency median / p95 (ms) | first skeleton (s) '
+          '| registered from pass 3 | registration error from pass 3 (cm) | live joint to nearest true joint '
+          'from pass 3: median / p95 (cm) |')
+    print('|---|---|---|---|---|---|---|---|')
+    for name, source_args, params, human in rows:
+        for run in range(1, args.runs + 1):
+            try:
+                bag = bag_for(name, source_args, work, human)
+                row = replay_row(bag, work / f'{bag.name}_out', args.loop, params)
+            except Exception as error:  # a row that fails is reported, the others still run
+                print(f'| {name} | {run} | failed: {type(error).__name__}: {error} ||||||', flush=True)
+                continue
+            print(f"| {name} | {run} | {row['joints_hz']:.1f} of {row['camera_hz']:.1f} "
+                  f"| {row['latency_ms'][0]} / {row['latency_ms'][1]} | {row['first_s']:.1f} "
+                  f"| {row['registered_later']} | {row['registration_cm']:.1f} "
+                  f"| {row['nearest_cm'][0]:.1f} / {row['nearest_cm'][1]:.1f} |", flush=True)
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
