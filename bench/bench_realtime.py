@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import re
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -62,7 +63,7 @@ def bag_for(name: str, source_args: list, work: Path, human: bool = False) -> Pa
 
 def replay_row(bag: Path, out: Path, loop: int, params: Path | None) -> dict:
     """`replay --realtime --loop` on `bag` into `out` (replaced), its printed figures and the scores."""
-    subprocess.run(['rm', '-rf', str(out)], check=True)
+    shutil.rmtree(out, ignore_errors=True)
     command = [CLI, 'replay', str(bag), '--out', str(out), '--realtime', '--loop', str(loop)]
     if params is not None:
         command += ['--params', str(params)]

