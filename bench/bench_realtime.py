@@ -1,8 +1,8 @@
 """The installed nodes driven like a camera on real motion in the room: the live targets of
 the camera-rate issue (rate, latency, first skeleton) and the live joints' accuracy, end to end.
 
-    python bench/bench_realtime.py [--only walk_normal,cow,human] [--loop 10] [--window 10]
-                                   [--runs 1] [--work DIR]
+    python bench/bench_realtime.py [--only walk_normal,cow,human] [--loop 10] [--bounce]
+                                   [--window 10] [--runs 1] [--work DIR]
 
 For each clip (default: the five of bench/README.md's node tables: walk_normal, run_normal,
 cow, wave-both-hands_active, wave-left-hand_normal; `--only` picks among every clip of
@@ -18,10 +18,11 @@ Printed per run: joints once tracking (Hz, of the camera's), latency cloud -> jo
 pass 3 on and the registration's error on them (cm), each live joint's distance to its
 nearest true joint over every frame with joints (median / p95, cm), as
 bench/score_realtime.py scores them.
-The walker jumps back to the start of the walk at each pass. Nothing else may run while it
-measures: every number is a time on a shared 2-core machine. The nodes join the ROS domain
-of the environment: give the bench one of its own (ROS_DOMAIN_ID, and
-ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST).
+The walker jumps back to the start of the walk at each pass; with `--bounce` every other
+pass plays the bag backwards (`replay --bounce`) and the motion stays continuous. Nothing
+else may run while it measures: every number is a time on a shared 2-core machine. The
+nodes join the ROS domain of the environment: give the bench one of its own
+(ROS_DOMAIN_ID, and ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST).
 """
 from __future__ import annotations
 
@@ -61,10 +62,11 @@ def bag_for(name: str, source_args: list, work: Path, human: bool = False) -> Pa
     return bag
 
 
-def replay_row(bag: Path, out: Path, loop: int, params: Path | None) -> dict:
+def replay_row(bag: Path, out: Path, loop: int, params: Path | None, bounce: bool = False) -> dict:
     """`replay --realtime --loop` on `bag` into `out` (replaced), its printed figures and the scores."""
     shutil.rmtree(out, ignore_errors=True)
-    command = [CLI, 'replay', str(bag), '--out', str(out), '--realtime', '--loop', str(loop)]
+    command = [CLI, 'replay', str(bag), '--out', str(out), '--realtime', '--loop', str(loop)] + \
+        (['--bounce'] if bounce else [])
     if params is not None:
         command += ['--params', str(params)]
     done = subprocess.run(command, capture_output=True, text=True)
@@ -73,7 +75,7 @@ def replay_row(bag: Path, out: Path, loop: int, params: Path | None) -> dict:
     found = {key: pattern.search(done.stdout) for key, pattern in LINES.items()}
     if found['tracking'] is None:
         raise RuntimeError(f'replay {bag.name}: no skeleton was tracked\n{done.stdout[-600:]}')
-    scores = score(bag, out)
+    scores = score(bag, out, bounce=bounce)
     return {'first_s': float(found['first_s'][1]),
             'latency_ms': (int(found['latency'][1]), int(found['latency'][2])),
             'joints_hz': float(found['tracking'][4]), 'camera_hz': float(found['tracking'][5]),
@@ -87,6 +89,7 @@ def main(argv=None) -> int:
                         help='clips (substrings of their names), human: the built-in human as clouds '
                              '(default: %(default)s)')
     parser.add_argument('--loop', type=int, default=10, help='passes over each bag')
+    parser.add_argument('--bounce', action='store_true', help='every other pass backwards (replay --bounce)')
     parser.add_argument('--window', type=int, default=10, help="the accumulator's window_size for the clips")
     parser.add_argument('--runs', type=int, default=1, help='runs of each bag')
     parser.add_argument('--work', type=Path)
@@ -100,7 +103,8 @@ def main(argv=None) -> int:
             if name != 'samba']                                  # a mesh sequence: no joints to track
     if 'human' in args.only.split(','):
         rows.append(('human', ['--subject', 'human'], None, True))
-    print(f'replay --realtime --loop {args.loop}; clips: depth images, window_size {args.window}; work {work}\n')
+    print(f'replay --realtime --loop {args.loop}{" --bounce" if args.bounce else ""}; clips: depth images, '
+          f'window_size {args.window}; work {work}\n')
     print('| bag | run | joints once tracking (Hz of camera) | latency median / p95 (ms) | first skeleton (s) '
           '| registered from pass 3 | registration error from pass 3 (cm) | live joint to nearest true joint: '
           'median / p95 (cm) |')
@@ -109,7 +113,7 @@ def main(argv=None) -> int:
         for run in range(1, args.runs + 1):
             try:
                 bag = bag_for(name, source_args, work, human)
-                row = replay_row(bag, work / f'{bag.name}_out', args.loop, params)
+                row = replay_row(bag, work / f'{bag.name}_out', args.loop, params, args.bounce)
             except Exception as error:  # a row that fails is reported, the others still run
                 print(f'| {name} | {run} | failed: {type(error).__name__}: {error} ||||||', flush=True)
                 continue

@@ -1,7 +1,7 @@
 """Score the live joints of a `skel-extract replay --realtime [--loop N]` against the bag's
 ground truth, repeated for each pass of the loop.
 
-    python bench/score_realtime.py BAG OUT [--from-pass K]
+    python bench/score_realtime.py BAG OUT [--from-pass K] [--bounce]
 
 BAG: the simulated bag (its gt.npz); OUT: the replay's --out directory (its output.mcap).
 The live joints, one PoseArray per camera frame, are read from skeleton/joints in
@@ -31,6 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from skel_extract_ros.evaluation import (GroundTruth, PredictedSkeleton, evaluate_joints,  # noqa: E402
                                          evaluate_registration, match_frames)
+from skel_extract_ros.replay import looped_stamp  # noqa: E402
 
 
 def live_joints(recording: Path) -> PredictedSkeleton:
@@ -53,30 +54,34 @@ def live_joints(recording: Path) -> PredictedSkeleton:
                              np.array([positions[i] for i in keep])[order])
 
 
-def looped(gt: GroundTruth, until_s: float) -> tuple:
+def looped(gt: GroundTruth, until_s: float, bounce: bool = False) -> tuple:
     """(the ground truth repeated until `until_s`, one pass in s), stamps moved on by a pass
-    each time as `replay --loop` moves them."""
+    each time as `replay --loop` moves them (with `bounce`, every odd pass backwards, its
+    stamps mirrored: replay.looped_stamp)."""
     n = len(gt.stamps)
     pass_s = (gt.stamps[-1] - gt.stamps[0]) * n / (n - 1)
+    mirror_s = gt.stamps[0] + gt.stamps[-1]
     passes = int(np.ceil((until_s - gt.stamps[0]) / pass_s)) + 1
+    order = [slice(None, None, -1) if bounce and k % 2 else slice(None) for k in range(passes)]
     fields = {}
     for field in dataclasses.fields(gt):
         value = getattr(gt, field.name)
         if field.name == 'stamps':
-            fields['stamps'] = np.concatenate([value + k * pass_s for k in range(passes)])
+            fields['stamps'] = np.concatenate([looped_stamp(value[order[k]], k, pass_s, mirror_s, bounce)
+                                               for k in range(passes)])
         elif isinstance(value, np.ndarray) and value.ndim and len(value) == n and field.name != 'surface_bone_ids':
-            fields[field.name] = np.concatenate([value] * passes)
+            fields[field.name] = np.concatenate([value[order[k]] for k in range(passes)])
     return dataclasses.replace(gt, **fields), pass_s
 
 
-def score(bag: Path, out: Path, from_pass: int = 3) -> dict:
+def score(bag: Path, out: Path, from_pass: int = 3, bounce: bool = False) -> dict:
     """The live joints and registered frames of a replay in `out` against the bag's ground
     truth, repeated for each pass: {'all' / 'later': JointReport or None (every frame with
     joints / from pass `from_pass` on), 'nearest_cm': (median, p95) of each live joint's
     distance to its nearest true joint, 'registration': (frames, frames from the pass,
     mean cm, mean cm from the pass)}."""
     pred = live_joints(out / 'output.mcap')
-    gt, pass_s = looped(GroundTruth.load(bag / 'gt.npz'), float(pred.stamps.max()))
+    gt, pass_s = looped(GroundTruth.load(bag / 'gt.npz'), float(pred.stamps.max()), bounce)
     later = pred.stamps >= gt.stamps[0] + from_pass * pass_s
     result = {}
     for name, chosen in (('all', np.ones(len(pred.stamps), bool)), ('later', later)):
@@ -99,8 +104,9 @@ def main(argv=None) -> int:
     parser.add_argument('bag', type=Path)
     parser.add_argument('out', type=Path)
     parser.add_argument('--from-pass', type=int, default=3)
+    parser.add_argument('--bounce', action='store_true', help='the replay ran with --bounce')
     args = parser.parse_args(argv)
-    result = score(args.bag, args.out, args.from_pass)
+    result = score(args.bag, args.out, args.from_pass, args.bounce)
     for key, name in (('all', 'every frame with joints'), ('later', f'from pass {args.from_pass}')):
         if result[key] is None:
             print(f'{name}: no frame')

@@ -265,7 +265,7 @@ def _cmd_replay(args) -> int:
     try:
         summary = replay(args.input, out, rate=args.rate, topic=args.topic, params_file=args.params,
                          namespace=args.namespace, progress=on_published, realtime=args.realtime,
-                         loops=args.loop)
+                         loops=args.loop, bounce=args.bounce)
     except (BagError, ParamsError, ReplayError) as error:
         raise UserError(str(error)) from None
     finally:
@@ -405,6 +405,9 @@ def build_parser() -> argparse.ArgumentParser:
     replay_cmd.add_argument('--loop', type=int, default=1, metavar='N',
                             help='with --realtime: play the bag N times, the stamps moving on each pass '
                                  '(a long live run from a short bag)')
+    replay_cmd.add_argument('--bounce', action='store_true',
+                            help='with --loop: every other pass plays the bag backwards, so the motion stays '
+                                 'continuous (a walker walks back instead of jumping to the start)')
     replay_cmd.add_argument('--topic', default=None, help='PointCloud2 topic in the bag (default: the only one)')
     replay_cmd.add_argument('--params', default=None, help='ROS 2 parameter YAML for the nodes')
     replay_cmd.add_argument('--namespace', default=None, help='run the nodes and topics in this namespace')

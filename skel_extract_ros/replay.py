@@ -225,14 +225,25 @@ class _Recorder:
         return True
 
 
+def looped_stamp(original: int, pass_index: int, pass_ns: int, mirror_ns: int, bounce: bool) -> int:
+    """The stamp (ns) a bag message stamped `original` gets in pass `pass_index` of a looped
+    replay: moved on by a pass (the bag's length and one period, `pass_ns`) each pass; with
+    `bounce` every odd pass plays the bag backwards, its stamps mirrored about the middle of
+    the bag (`mirror_ns` = first + last stamp), so the last frame of a pass and the first of
+    the next are one period apart either way and the motion stays continuous."""
+    return (mirror_ns - original if bounce and pass_index % 2 else original) + pass_index * pass_ns
+
+
 def replay(input_path, out, rate: float = 1.0, topic: str | None = None, params_file=None,
            namespace: str | None = None, frame_timeout: float = 20.0, progress=None,
-           realtime: bool = False, loops: int = 1) -> dict:
+           realtime: bool = False, loops: int = 1, bounce: bool = False) -> dict:
     """Run the node graph on a bag; writes DIR/output.mcap, skeleton.json, skeleton.bvh,
     registered.npz, skeleton.png and DIR/logs/<node>.log. Returns a summary dict (counts,
     latencies; with `realtime`, 'realtime': the camera-like delivery). `loops` (realtime
     only): play the bag that many times, the stamps of each pass moved on by the bag's
-    length so time never goes back (each pass starts with a jump to the first pose).
+    length so time never goes back (each pass starts with a jump to the first pose; with
+    `bounce` every other pass plays the bag backwards instead, see `looped_stamp`: the
+    bag's messages are then held in memory).
     Raises ReplayError / BagError on failure."""
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
@@ -318,22 +329,28 @@ def replay(input_path, out, rate: float = 1.0, topic: str | None = None, params_
             raise ReplayError('the nodes did not come up within 120 s (see DIR/logs)')
 
         started = time.perf_counter()
-        first_stamp, previous, shift_ns, pass_ns = None, None, 0, 0
+        first_stamp, previous, pass_ns, mirror_ns = None, None, 0, 0
 
-        def restamped(raw, msg_type):
-            """(stamp ns, raw CDR) of a message with its stamp moved on by shift_ns."""
+        def restamped(raw, msg_type, pass_index):
+            """(original stamp ns, its stamp in this pass, raw CDR) of a message."""
             msg = deserialize_message(bytes(raw), msg_type)
-            stamp = stamp_ns(msg.header) + shift_ns
-            if shift_ns:
+            original = stamp_ns(msg.header)
+            stamp = looped_stamp(original, pass_index, pass_ns, mirror_ns, bounce)
+            if stamp != original:
                 msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp, 10**9)
                 raw = serialize_message(msg)
-            return stamp, bytes(raw)
-        bag_messages = (message for _pass in range(loops) for message in _raw_messages(input_path, topic))
-        for index, (_time, raw) in enumerate(bag_messages):
+            return original, stamp, bytes(raw)
+        if bounce and loops > 1:
+            held = [raw for _time, raw in _raw_messages(input_path, topic)]
+            bag_messages = (raw for pass_index in range(loops) for raw in (held[::-1] if pass_index % 2 else held))
+        else:
+            bag_messages = (raw for _pass in range(loops) for _time, raw in _raw_messages(input_path, topic))
+        for index, raw in enumerate(bag_messages):
             if index == n_frames:   # the bag's length and one period: a pass moves the stamps on by it
                 pass_ns = (previous - first_stamp) * n_frames // (n_frames - 1)
-            shift_ns = (index // n_frames) * pass_ns
-            stamp, raw = restamped(raw, cloud_type)
+                mirror_ns = first_stamp + previous
+            pass_index = index // n_frames
+            original, stamp, raw = restamped(raw, cloud_type, pass_index)
             first_stamp = stamp if first_stamp is None else first_stamp
             if not realtime and previous is not None and not recorder.wait_for(
                     lambda s=previous: s in received.filtered_at, frame_timeout, alive):
@@ -344,8 +361,8 @@ def replay(input_path, out, rate: float = 1.0, topic: str | None = None, params_
                 time.sleep(max(0.0, due - time.perf_counter()))
             received.published_at[stamp] = time.perf_counter()
             if depth_image:   # the camera info at or before the image goes first
-                info = infos[max(int(np.searchsorted(info_stamps, stamp - shift_ns, side='right')) - 1, 0)]
-                recorder.info_publisher.publish(restamped(info[1], info_type)[1])
+                info = infos[max(int(np.searchsorted(info_stamps, original, side='right')) - 1, 0)]
+                recorder.info_publisher.publish(restamped(info[1], info_type, pass_index)[2])
             recorder.publisher.publish(raw)
             previous = stamp
             if progress:
