@@ -225,6 +225,33 @@ class _Recorder:
         return True
 
 
+def _held_messages(input_path: Path, topic: str) -> list:
+    """The raw messages of `topic`, in memory (for passes played backwards); ReplayError when
+    they would take more than half the memory the system has available."""
+    from .bag import _raw_messages
+    budget = _available_memory_bytes() // 2
+    held, size = [], 0
+    for _time, raw in _raw_messages(input_path, topic):
+        held.append(raw)
+        size += len(raw)
+        if size > budget:
+            raise ReplayError(f'--bounce holds the bag in memory, and {input_path} is larger than half the '
+                              f'memory available ({budget * 2e-9:.1f} GB): play it without --bounce')
+    return held
+
+
+def _available_memory_bytes() -> int:
+    """MemAvailable of /proc/meminfo (bytes), or the free physical pages where there is none."""
+    try:
+        with open('/proc/meminfo') as meminfo:
+            for line in meminfo:
+                if line.startswith('MemAvailable:'):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return os.sysconf('SC_AVPHYS_PAGES') * os.sysconf('SC_PAGE_SIZE')
+
+
 def looped_stamp(original: int, pass_index: int, pass_ns: int, mirror_ns: int, bounce: bool) -> int:
     """The stamp (ns) a bag message stamped `original` gets in pass `pass_index` of a looped
     replay: moved on by a pass (the bag's length and one period, `pass_ns`) each pass; with
@@ -275,6 +302,8 @@ def replay(input_path, out, rate: float = 1.0, topic: str | None = None, params_
         raise ReplayError(f'{out / "output.mcap"} exists already; choose a new --out or remove it')
     out.mkdir(parents=True, exist_ok=True)
 
+    # --bounce plays passes backwards: the bag's messages are held, read before any node starts
+    held = _held_messages(input_path, topic) if bounce and loops > 1 else None
     store = typestore()
     depth_image = is_depth_topic(input_path, topic)
     cloud_type = _ros_type('sensor_msgs/msg/Image' if depth_image else 'sensor_msgs/msg/PointCloud2')
@@ -340,8 +369,7 @@ def replay(input_path, out, rate: float = 1.0, topic: str | None = None, params_
                 msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp, 10**9)
                 raw = serialize_message(msg)
             return original, stamp, bytes(raw)
-        if bounce and loops > 1:
-            held = [raw for _time, raw in _raw_messages(input_path, topic)]
+        if held is not None:
             bag_messages = (raw for pass_index in range(loops) for raw in (held[::-1] if pass_index % 2 else held))
         else:
             bag_messages = (raw for _pass in range(loops) for _time, raw in _raw_messages(input_path, topic))

@@ -4,6 +4,7 @@ import json
 import re
 
 import numpy as np
+import pytest
 
 from skel_extract_ros.bag import topic_counts
 
@@ -130,3 +131,14 @@ def test_looped_stamps_move_on_by_a_period_across_passes_and_bounce_mirrors():
     # the order of the content: forward, then the last frame again first, backwards
     assert looped_stamp(int(bag[-1]), 1, pass_ns, mirror_ns, True) == bag[-1] + period
     assert looped_stamp(int(bag[0]), 1, pass_ns, mirror_ns, False) == bag[-1] + period
+
+
+def test_bounce_refuses_a_bag_larger_than_half_the_available_memory(sample_bag, monkeypatch):
+    """--bounce holds the bag's messages; one that would not fit says so before any node starts."""
+    from skel_extract_ros import replay as replay_module
+    from skel_extract_ros.bag import select_cloud_topic
+    topic = select_cloud_topic(sample_bag, None)
+    assert len(replay_module._held_messages(sample_bag, topic)) == 60
+    monkeypatch.setattr(replay_module, '_available_memory_bytes', lambda: 2_000_000)
+    with pytest.raises(replay_module.ReplayError, match='--bounce holds the bag in memory'):
+        replay_module._held_messages(sample_bag, topic)
