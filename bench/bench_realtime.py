@@ -38,6 +38,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / 'bench'))
 
+from bench_live import simulated_bag  # noqa: E402
 from bench_real_motion import CLI, subjects  # noqa: E402
 from score_realtime import score  # noqa: E402
 
@@ -48,18 +49,6 @@ LINES = {
     'tracking': re.compile(r'once tracking \(([\d.]+) s\): (\d+) of (\d+) camera frames got joints '
                            r'\(([\d.]+) Hz of ([\d.]+) Hz\)'),
 }
-
-
-def bag_for(name: str, source_args: list, work: Path, human: bool = False) -> Path:
-    """The room bag of a clip (or of the built-in human), simulated once into `work`."""
-    bag = work / (f'{name}_room_clouds' if human else f'{name}_room_depth')
-    if not (bag / 'gt.npz').is_file():
-        extra = ['--frames', '300'] if human else ['--frames', '90', '--depth-image']
-        done = subprocess.run([CLI, 'simulate', *source_args, *extra, '--scene', 'room', '--out', str(bag)],
-                              capture_output=True, text=True)
-        if done.returncode != 0:
-            raise RuntimeError(f'simulate {name}: {done.stderr.strip()[-300:]}')
-    return bag
 
 
 def replay_row(bag: Path, out: Path, loop: int, params: Path | None, bounce: bool = False) -> dict:
@@ -112,7 +101,9 @@ def main(argv=None) -> int:
     for name, source_args, params, human in rows:
         for run in range(1, args.runs + 1):
             try:
-                bag = bag_for(name, source_args, work, human)
+                # the clips as depth images (90 frames), the human as clouds (300), kept in work
+                bag = (simulated_bag(f'{name}_clouds', source_args, 'room', 300, work) if human else
+                       simulated_bag(f'{name}_depth', [*source_args, '--depth-image'], 'room', 90, work))
                 row = replay_row(bag, work / f'{bag.name}_out', args.loop, params, args.bounce)
             except Exception as error:  # a row that fails is reported, the others still run
                 print(f'| {name} | {run} | failed: {type(error).__name__}: {error} ||||||', flush=True)

@@ -282,7 +282,7 @@ def _cmd_replay(args) -> int:
               f'({camera["joints_hz"]:.1f} Hz), {camera["without_joints"]} without; latency cloud -> joints '
               f'median {camera["latency_ms_median"]:.0f} ms, p95 {camera["latency_ms_p95"]:.0f} ms '
               f'({camera["live_frames"]} live frames)')
-        if camera['first_skeleton_s'] == camera['first_skeleton_s']:       # not NaN
+        if not np.isnan(camera['first_skeleton_s']):
             print(f'first skeleton {camera["first_skeleton_s"]:.1f} s after the first camera frame')
         tracking = camera['tracking']
         if tracking is not None:
