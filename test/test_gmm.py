@@ -1,7 +1,7 @@
 """The truncated E-step (core.gmm) against the dense GMM posteriors of Eq. (3) / (11)."""
 import numpy as np
 
-from skel_extract_ros.core.gmm import gmm_posteriors, nearest_centroids
+from skel_extract_ros.core.gmm import CandidateCache, gmm_posteriors, nearest_centroids
 
 
 def _dense_statistics(observed, centroids, sigma2, omega):
@@ -61,3 +61,35 @@ def test_nearest_centroids_are_the_k_nearest_within_the_radius():
     # fewer centroids than K: the missing slots are M
     few = nearest_centroids(observed, centroids[:3], 8)
     assert few.shape == (700, 3) and (few < 3).all()
+
+
+def test_candidate_cache_queries_again_only_after_a_move_past_the_spacing_or_a_wider_radius():
+    rng = np.random.default_rng(2)
+    centroids = rng.uniform(0, 0.5, (400, 3))
+    observed = centroids[rng.integers(0, 400, 1000)] + rng.normal(scale=0.005, size=(1000, 3))
+    sigma2, spacing = 1e-4, 0.02
+    cache = CandidateCache(observed, spacing, 8)
+    first = cache.posteriors(centroids, sigma2, 0.01)
+    fresh = gmm_posteriors(observed, centroids, sigma2, 0.01)
+    # a fresh query: exactly gmm_posteriors' own (the margin only widens the candidate ball)
+    assert cache.queries == 1 and np.allclose(first.P1, fresh.P1) and np.allclose(first.Px, fresh.Px)
+    # every centroid moved by under the spacing, sigma shrank: the same lists, close to exact
+    moved = centroids + rng.uniform(-0.005, 0.005, centroids.shape)
+    stale = cache.posteriors(moved, 0.5 * sigma2, 0.01)
+    exact = gmm_posteriors(observed, moved, 0.5 * sigma2, 0.01)
+    assert cache.queries == 1
+    assert np.abs(stale.P1 - exact.P1).sum() < 0.01 * exact.Np
+    # one centroid moved past the spacing: a new query, exact again
+    jumped = moved.copy()
+    jumped[7] += [0.03, 0.0, 0.0]
+    after_jump = cache.posteriors(jumped, 0.5 * sigma2, 0.01)
+    assert cache.queries == 2
+    assert np.allclose(after_jump.P1, gmm_posteriors(observed, jumped, 0.5 * sigma2, 0.01).P1)
+    # the truncation radius grew past the queried 1.5 x radius: a new query
+    cache.posteriors(jumped, 4.0 * sigma2, 0.01)
+    assert cache.queries == 3
+    # no radius (the live fit): the K nearest however far, never queried again for sigma
+    unbounded = CandidateCache(observed, spacing, 8, radius_margin=np.inf)
+    assert (unbounded.candidates_for(centroids) < len(centroids)).all()
+    unbounded.posteriors(centroids, 100.0 * sigma2, 0.01)
+    assert unbounded.queries == 1

@@ -37,7 +37,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .gmm import gmm_posteriors, nearest_centroids
+from .gmm import CandidateCache
 from .rigid import rotations_from_h
 from .structure import SkeletalStructure, joint_trajectories, solve_joints
 
@@ -179,29 +179,18 @@ class JointEstimation:
         energies = []
         previous = None          # (data terms, E_Joint, alpha) of the previous iterate
         deformed = self._deform(rest, rotations, translations, influences, weights)
-        # The E-step was two thirds of the time. Its k-d tree query finds each observation's
-        # nearest centroids; the centroids move by millimetres per iteration, so a frame
-        # keeps its candidate lists (posteriors stay exact over them) until one of its
-        # centroids has moved a rest spacing or the truncation radius outgrew the query
-        # (measured: a fifth of the queries, joints within 0.1 mm of querying every time).
-        # Frames are independent, and the queries and numpy reductions release the GIL, so
-        # threads use every core.
+        # The E-step was two thirds of the time. Each frame keeps its observations' candidate
+        # centroids across iterations (core.gmm.CandidateCache: measured here, a fifth of the
+        # queries, joints within 0.1 mm of querying every time). Frames are independent, and
+        # the queries and numpy reductions release the GIL, so threads use every core.
         spacing = float(np.median(cKDTree(rest).query(rest, k=2)[0][:, 1]))
-        candidates = [None] * F                 # (N_t, K) indices per frame
-        queried_at = [None] * F                 # (M, 3) centroids and radius of that query
+        caches = [CandidateCache(v, spacing, p.e_step_neighbours) if len(v) else None for v in observed]
         pool = ThreadPoolExecutor(max_workers=min(os.cpu_count() or 1, 8))
 
         def e_step(frame):
-            v = observed[frame]
-            if not len(v):
+            if caches[frame] is None:
                 return None
-            radius = p.truncation_sigmas * np.sqrt(tau[frame])
-            if (candidates[frame] is None or radius > queried_at[frame][1]
-                    or np.max(np.linalg.norm(deformed[frame] - queried_at[frame][0], axis=1)) > spacing):
-                candidates[frame] = nearest_centroids(v, deformed[frame], p.e_step_neighbours, 1.5 * radius)
-                queried_at[frame] = (deformed[frame].copy(), 1.5 * radius)
-            return gmm_posteriors(v, deformed[frame], tau[frame], p.omega, p.e_step_neighbours,
-                                  p.truncation_sigmas, candidates=candidates[frame])
+            return caches[frame].posteriors(deformed[frame], tau[frame], p.omega, p.truncation_sigmas)
         try:
             for _ in range(p.max_iterations):
                 stats = list(pool.map(e_step, range(F)))

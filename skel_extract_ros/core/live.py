@@ -56,7 +56,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .gmm import gmm_posteriors, nearest_centroids
+from .gmm import CandidateCache
 from .joints import JointParams
 from .point_sets import finite_rows
 from .rigid import fit_rigid_segments, rotations_from_h, weighted_rigid_fit
@@ -300,15 +300,16 @@ class ArticulatedTracker(_BoneBlocks):
         rotations, translations = self.predict()
         anchors = (rotations.copy(), translations.copy())
         deformed = self.deform(rotations, translations)
-        # One k-d tree query at the prediction serves the reach and the E-steps: as in Alg. 2,
-        # each observation keeps its nearest model points as candidates (the posteriors are
-        # exact over them, the truncation radius applied) until a model point has moved a
-        # rest spacing; it was 4 queries a frame, a third of the fit's time.
-        candidates = nearest_centroids(observed, deformed, params.e_step_neighbours)
+        # One k-d tree query at the prediction serves the reach and the E-steps: each
+        # observation keeps its nearest model points, however far, as candidates until a
+        # model point has moved a rest spacing (core.gmm.CandidateCache); it was 4 queries a
+        # frame, a third of the fit's time.
+        cache = CandidateCache(observed, self._spacing, params.e_step_neighbours, radius_margin=np.inf)
+        candidates = cache.candidates_for(deformed)
         # reach: the prediction's own misfit sets the first tau (see the module docstring)
         reach = float(np.mean(np.sum((observed - deformed[candidates[:, 0]]) ** 2, axis=1))) / 3.0
         tau = max(reach, self.tau or params.initial_tau, params.min_tau)
-        tau, stats = self._em(observed, rotations, translations, anchors, tau, (candidates, deformed))
+        tau, stats = self._em(cache, rotations, translations, anchors, tau, deformed)
         support = self._support(stats)
         noise = float(np.median(self._recent_tau)) if self._recent_tau else tau
         self.diverged = bool(tau > self.lost_tau_factor * noise or stats is None)
@@ -319,19 +320,14 @@ class ArticulatedTracker(_BoneBlocks):
         self._history = (self._history + [(rotations.copy(), translations.copy())])[-2:]
         return rotations, translations
 
-    def _em(self, observed, rotations, translations, anchors, tau, query) -> tuple:
+    def _em(self, cache: CandidateCache, rotations, translations, anchors, tau, deformed) -> tuple:
         """`iterations` EM iterations in place on (rotations, translations) from the deformed
-        model of `query` = (candidates (N, K), deformed (M, 3) they were queried at); returns
-        (tau, the last E-step's statistics, or None when no observation was in reach)."""
+        model (M, 3), over the frame's observations in `cache`; returns (tau, the last
+        E-step's statistics, or None when no observation was in reach)."""
         params = self.params
-        candidates, deformed = query
-        queried_at = deformed
         stats = None
         for iteration in range(self.iterations):
-            if np.max(np.sum((deformed - queried_at) ** 2, axis=1)) > self._spacing ** 2:
-                candidates, queried_at = nearest_centroids(observed, deformed, params.e_step_neighbours), deformed
-            stats = gmm_posteriors(observed, deformed, tau, params.omega, params.e_step_neighbours,
-                                   params.truncation_sigmas, candidates=candidates)
+            stats = cache.posteriors(deformed, tau, params.omega, params.truncation_sigmas)
             if stats.Np < 1e-9:
                 return tau, None
             targets, weights = stats.targets(), stats.P1 / tau

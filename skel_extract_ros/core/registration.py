@@ -107,7 +107,7 @@ from scipy.sparse.linalg import spsolve
 from scipy.spatial import cKDTree
 
 from .deformation_graph import DeformationGraph
-from .gmm import GMMStatistics, gmm_posteriors
+from .gmm import CandidateCache, GMMStatistics, gmm_posteriors
 from .point_sets import finite_rows
 from .recapture import find_recaptures, lost_parts
 from .rigid import fit_weighted_segments, rotations_from_h, weighted_rigid_fit
@@ -287,7 +287,9 @@ class NonRigidRegistration:
         rest_points = np.asarray(rest_points, dtype=np.float64)
         if rest_points.ndim != 2 or rest_points.shape[1] != 3 or len(rest_points) < 10:
             raise ValueError(f'rest points must be (M >= 10, 3), got {rest_points.shape}')
-        spacing = self.params.node_spacing or self.params.node_spacing_factor * median_spacing(rest_points)
+        # the rest points' spacing: a centroid that moved less has passed no other (CandidateCache)
+        self.point_spacing = median_spacing(rest_points)
+        spacing = self.params.node_spacing or self.params.node_spacing_factor * self.point_spacing
         self.node_spacing = spacing
         self.graph = DeformationGraph.build(rest_points, spacing, self.params.n_influence)
         n_nodes = self.graph.n_nodes
@@ -435,10 +437,13 @@ class NonRigidRegistration:
 
     # ----------------------------------------------------------------------------------
     def _e_step(self, observed: np.ndarray, points: np.ndarray, sigma2: float,
-                view: 'ObservedView | None' = None) -> GMMStatistics:
-        """Eq. (3) over the centroids the camera can see (all without a view)."""
+                view: 'ObservedView | None' = None, cache: CandidateCache | None = None) -> GMMStatistics:
+        """Eq. (3) over the centroids the camera can see (all without a view); without a
+        view, over the candidates of `cache` (the frame's CandidateCache)."""
         p = self.params
         if view is None:
+            if cache is not None:
+                return cache.posteriors(points, sigma2, p.omega, p.truncation_sigmas)
             return gmm_posteriors(observed, points, sigma2, p.omega, p.e_step_neighbours, p.truncation_sigmas)
         visible = view.visible(points, p.truncation_sigmas * np.sqrt(sigma2))
         self.last_visible_ = visible
@@ -558,8 +563,10 @@ class NonRigidRegistration:
         energies = []
         iterations = 0
         estep = None
+        # the visible subset changes between iterations: its E-step queries every time
+        cache = CandidateCache(observed, self.point_spacing, p.e_step_neighbours) if view is None else None
         for iterations in range(1, p.max_iterations + 1):
-            estep = self._e_step(observed, points, sigma2, view)
+            estep = self._e_step(observed, points, sigma2, view, cache)
             # the objective and the IRLS weights below are both at these transforms
             residuals = self.edge_residuals(rotations, translations)
             energies.append(estep.nll + self.smoothness_penalty(rotations, translations, sigma2, residuals))
