@@ -188,6 +188,13 @@ def run_node(node_factory, args=None) -> int:
         return 2
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except RuntimeError:
+        # rclpy's deferred SIGINT handler shuts the context down from its own thread; an
+        # executor creating its wait set at that moment raises RCLError instead of
+        # ExternalShutdownException (ros2/rclpy#1166; ros2cli catches it the same way):
+        # a Ctrl-C, not a failure, once the context is down
+        if rclpy.ok():
+            raise
     finally:
         if node is not None:
             node.destroy_node()
