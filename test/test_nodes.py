@@ -245,14 +245,17 @@ def test_registration_node_registers_the_first_window_in_order_then_the_newest(r
     # the first window is learned: the newest frames from now on (queue_size 1)
     ros.publisher('skeleton/structure', String, LATCHED_QOS).publish(String(data='{}'))
     ros.wait(lambda: node.registrar.keep == 'newest' and node.registrar.capacity == 1, what='queue_size')
-    # (no joint node will describe the skeleton: the camera stage serves every cloud again)
-    filtered_before, registered_before = len(filtered), len(registered)
+    # (no joint node will describe the skeleton: the camera stage serves every cloud again,
+    # whether the registration takes it or not; how many it takes depends on the machine)
+    filtered_before, taken_before = len(filtered), node.camera.processed
     second = burst(20, 20)
     ros.wait(lambda: node.processed + node.skipped == 40, what='every cloud processed or skipped')
     ros.wait(lambda: second[-1] in stamps_of(registered), what='the newest cloud registered')
     assert stamps_of(registered) == sorted(stamps_of(registered))     # in order, throughout
     ros.wait(lambda: second[-1] in stamps_of(filtered), what='the newest cloud on filtered_points')
-    assert len(filtered) - filtered_before > len(registered) - registered_before
+    ros.wait(lambda: len(filtered) - filtered_before == node.camera.processed - taken_before,
+             what='filtered_points of every cloud the camera stage took')
+    assert set(stamps_of(registered)) <= set(stamps_of(filtered))
 
 
 def test_registration_starts_from_the_newest_posed_model_of_the_joint_node(ros, arm):
