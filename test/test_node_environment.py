@@ -99,8 +99,8 @@ def test_a_node_writes_its_threads_stacks_on_sigusr1_and_goes_on(tmp_path):
 
 def test_run_node_ends_cleanly_when_ctrl_c_races_the_executor(monkeypatch):
     """rclpy's deferred SIGINT handler shuts the context down from its own thread; an
-    executor creating its wait set at that moment raises RCLError (seen once in CI: the
-    accumulator exited 1 with a traceback on Ctrl-C). With the context down that is a
+    executor creating its wait set at that moment raises RCLError (seen once in a run of the
+    test suite: the accumulator exited 1 on Ctrl-C). With the context down that is a
     Ctrl-C: exit 0. With the context up the same error is a failure and is not hidden."""
     import rclpy
     from rclpy._rclpy_pybind11 import RCLError
