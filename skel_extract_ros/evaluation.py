@@ -38,6 +38,8 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
+from .core.point_sets import median_spacing
+
 DEFAULT_MATCH_THRESHOLD_M = 0.15
 # A joint that bends less than this within the scored frames cannot be told from its
 # parent by motion; 25 degrees moves a 30 cm limb's end by 13 cm.
@@ -377,7 +379,7 @@ def evaluate_registration(points: np.ndarray, stamps: np.ndarray, gt: GroundTrut
     # true surface samples with a registered point within two sample spacings. One depth
     # camera sees about half of the body; points collapsed onto one spot cover nothing.
     surface = gt.surface_points[gt_idx[0]]
-    spacing = float(np.median(cKDTree(surface).query(surface, k=2)[0][:, 1]))
+    spacing = median_spacing(surface)
     near, _ = cKDTree(registered[0][first_valid]).query(surface, distance_upper_bound=2.0 * spacing)
     coverage = float(np.isfinite(near).mean())
     per_part = {}

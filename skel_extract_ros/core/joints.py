@@ -35,9 +35,9 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from .gmm import CandidateCache
+from .point_sets import median_spacing
 from .rigid import rotations_from_h
 from .structure import SkeletalStructure, joint_trajectories, solve_joints
 
@@ -183,7 +183,7 @@ class JointEstimation:
         # centroids across iterations (core.gmm.CandidateCache: measured here, a fifth of the
         # queries, joints within 0.1 mm of querying every time). Frames are independent, and
         # the queries and numpy reductions release the GIL, so threads use every core.
-        spacing = float(np.median(cKDTree(rest).query(rest, k=2)[0][:, 1]))
+        spacing = median_spacing(rest)
         caches = [CandidateCache(v, spacing, p.e_step_neighbours) if len(v) else None for v in observed]
         pool = ThreadPoolExecutor(max_workers=min(os.cpu_count() or 1, 8))
 

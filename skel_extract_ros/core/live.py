@@ -54,11 +54,10 @@ the fit (core.recapture), an E-step over the model points the camera can see
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from .gmm import CandidateCache
 from .joints import JointParams
-from .point_sets import finite_rows
+from .point_sets import finite_rows, median_spacing
 from .rigid import fit_rigid_segments, rotations_from_h, weighted_rigid_fit
 from .skeleton_model import SkeletonModel
 from .structure import joint_trajectories
@@ -258,7 +257,7 @@ class ArticulatedTracker(_BoneBlocks):
         self.diverged = False       # ... because it explains the data far worse than usual
         self._counts = np.maximum(np.bincount(self._dominant, minlength=self.n_bones), 1)
         # the model points' spacing: moving less keeps the E-step's candidate lists
-        self._spacing = float(np.median(cKDTree(self._rest).query(self._rest, k=2)[0][:, 1]))
+        self._spacing = median_spacing(self._rest)
 
     def seed(self, rotations: np.ndarray, translations: np.ndarray, tau: float | None = None) -> None:
         """Start (again) from a known pose: rotations (B, 3, 3), translations (B, 3), e.g.

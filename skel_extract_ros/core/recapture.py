@@ -21,6 +21,7 @@ from scipy import sparse
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from .point_sets import median_spacing
 from .rigid import weighted_rigid_fit
 
 ICP_ITERATIONS = 15
@@ -135,7 +136,7 @@ def find_recaptures(observed: np.ndarray, points: np.ndarray, node_positions: np
     parts = lost_parts(support, edges)
     if not parts:
         return []
-    spacing = float(np.median(cKDTree(observed).query(observed, k=2)[0][:, 1]))
+    spacing = median_spacing(observed)
     # a lost part is at least a node's worth of points: smaller pieces are noise
     min_points = max(10, int(len(observed) / max(len(node_positions), 1)))
     clusters = unexplained_clusters(observed, points, reach, 2.5 * spacing, min_points)

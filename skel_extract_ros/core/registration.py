@@ -111,7 +111,7 @@ from scipy.spatial import cKDTree
 
 from .deformation_graph import DeformationGraph
 from .gmm import CandidateCache, GMMStatistics, gmm_posteriors
-from .point_sets import finite_rows
+from .point_sets import finite_rows, median_spacing
 from .recapture import find_recaptures, lost_parts
 from .rigid import fit_weighted_segments, rotations_from_h, weighted_rigid_fit
 
@@ -267,12 +267,6 @@ class _EMState:
     iterations: int
     energies: list
     recaptured: int = 0
-
-
-def median_spacing(points: np.ndarray) -> float:
-    """Median distance from each point to its nearest neighbour (m)."""
-    distances, _ = cKDTree(points).query(points, k=2)
-    return float(np.median(distances[:, 1]))
 
 
 class NonRigidRegistration:

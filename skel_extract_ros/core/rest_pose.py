@@ -14,6 +14,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .point_sets import median_spacing
+
 
 class RestPoseError(ValueError):
     """The first frame cannot give a rest pose (too few points, degenerate surface)."""
@@ -71,7 +73,7 @@ class RestPose:
                 cloud, depth=params.poisson_depth, n_threads=params.poisson_threads)
         densities = np.asarray(densities)
         vertices = np.asarray(mesh.vertices)
-        spacing = float(np.median(cKDTree(points).query(points, k=2)[0][:, 1]))
+        spacing = median_spacing(points)
         distance, _ = cKDTree(points).query(vertices)
         remove = (densities < np.quantile(densities, params.density_quantile)) | \
                  (distance > params.max_distance_factor * max(spacing, 1e-6))

@@ -62,6 +62,7 @@ from scipy.cluster.vq import kmeans2
 from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
 from scipy.spatial import cKDTree
 
+from .point_sets import median_spacing
 from .rigid import fit_rigid_segments, segment_matrix
 
 
@@ -380,7 +381,7 @@ def extract_structure(rest: np.ndarray, registered: np.ndarray, params: Structur
         raise StructureError('fewer than 2 registered frames: no motion to separate bones')
     M = len(rest)
     size = float(np.linalg.norm(np.ptp(rest, axis=0)))
-    spacing = float(np.median(cKDTree(rest).query(rest, k=2)[0][:, 1]))
+    spacing = median_spacing(rest)
     radius = params.neighbour_radius or params.neighbour_radius_factor * spacing
     adjacency = _neighbour_graph(rest, radius)
 
