@@ -206,8 +206,9 @@ def _residuals(rest, registered, rotations, translations) -> np.ndarray:
 
 def _majority(labels: np.ndarray, adjacency: sparse.csr_matrix, n_labels: int) -> np.ndarray:
     """Each point's most frequent label within its ball (itself included)."""
-    counts = adjacency @ segment_matrix(labels, n_labels).T
-    return np.asarray(counts.argmax(axis=1)).ravel()
+    # (M, n_labels) dense: a few dozen labels; scipy's sparse argmax loops over rows in Python
+    counts = (adjacency @ segment_matrix(labels, n_labels).T).toarray()
+    return counts.argmax(axis=1)
 
 
 def _mean_residual(residual: np.ndarray, labels: np.ndarray) -> np.ndarray:
