@@ -122,3 +122,31 @@ def test_run_node_ends_cleanly_when_ctrl_c_races_the_executor(monkeypatch):
     with pytest.raises(RCLError):
         run_node(lambda: rclpy.create_node('real_failure'))
     assert not rclpy.ok()         # shut down on the way out all the same
+
+
+def test_run_node_stops_the_nodes_work_and_leaves_its_entities_to_the_context(monkeypatch):
+    """On Ctrl-C the node's threads and child processes stop (stop_work); rclpy's
+    destroy_node is not called: it wakes the executor that rclpy's signal thread is
+    shutting down, and a node hung there (the accumulator, twice in benchmark replays)."""
+    import rclpy
+    from rclpy.node import Node
+
+    from skel_extract_ros.nodes.common import run_node
+
+    calls = []
+
+    class Worked(Node):
+        def stop_work(self):
+            calls.append('stop_work')
+
+        def destroy_node(self):
+            calls.append('destroy_node')
+            return super().destroy_node()
+
+    def interrupted_spin(node):
+        rclpy.shutdown()
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(rclpy, 'spin', interrupted_spin)
+    assert run_node(lambda: Worked('worked')) == 0
+    assert calls == ['stop_work'] and not rclpy.ok()

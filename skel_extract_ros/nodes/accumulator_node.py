@@ -208,8 +208,12 @@ class AccumulatorNode(Node):
                                f'{len(update.key_stamps)} key frames in {seconds:.1f} s'
                                + (f'; {changes}' if changes else ''))
 
-    def destroy_node(self):
+    def stop_work(self) -> None:
+        """Stop the extraction thread (not the ROS entities: destroy_node)."""
         self.extractor.stop()
+
+    def destroy_node(self):
+        self.stop_work()
         return super().destroy_node()
 
 

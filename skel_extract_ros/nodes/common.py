@@ -169,7 +169,13 @@ def run_node(node_factory, args=None) -> int:
     errors end the node with one line and exit code 2. SIGUSR1 writes every thread's
     stack to stderr (the node's log) and the node goes on: what a node that does not end
     or answer is doing (`skel-extract replay` sends it before killing a node that did not
-    end on Ctrl-C)."""
+    end on Ctrl-C).
+
+    On the way out the node's own threads and child processes stop (`stop_work`), and its
+    ROS entities go with the context and the process, as in demo_nodes_py: rclpy's
+    destroy_node wakes the executor, which rclpy's signal thread may be shutting down at
+    that moment after a Ctrl-C, and it hung there now and then (the accumulator in two
+    benchmark replays: its main thread in Node._wake_executor, killed after 20 s)."""
     import faulthandler
     import signal
     import sys
@@ -196,8 +202,8 @@ def run_node(node_factory, args=None) -> int:
         if rclpy.ok():
             raise
     finally:
-        if node is not None:
-            node.destroy_node()
+        if node is not None and hasattr(node, 'stop_work'):
+            node.stop_work()
         rclpy.try_shutdown()
     return 0
 

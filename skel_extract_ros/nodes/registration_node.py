@@ -504,12 +504,17 @@ class RegistrationNode(Node):
         with self._count_lock:
             self._done += 1
 
-    def destroy_node(self):
+    def stop_work(self) -> None:
+        """Stop the camera and registration threads and the child processes (not the ROS
+        entities: destroy_node)."""
         # the registration stage first: a lossless camera stage blocked on it wakes at once
         self.registrar.stop()
         self.camera.stop()
         self.registration_process.close()
         self.rest_pose_process.close()
+
+    def destroy_node(self):
+        self.stop_work()
         return super().destroy_node()
 
 
