@@ -158,6 +158,14 @@ _JOINTS = {
     'live_iterations': ('EM iterations of the live fit to a camera frame (each: the whole-body move, then the '
                         'bone-by-bone update with the joint weight growing to Alg. 2\'s at the last)', (1, 100)),
     'live_sweeps': ('live per-frame fit: bone-by-bone passes after the rigid initialisation', (0, 100)),
+    'provisional_skeleton': ('with live_frames camera: track Step 2\'s skeleton (each point on its bone) as soon '
+                             'as a structure arrives, described with provisional true, while Alg. 2 runs; Alg. 2\'s '
+                             'model then replaces it under the same joint names. false: the first joints wait '
+                             'for Alg. 2 (seconds)', _ANY),
+    'estimation_niceness': ('added to the nice value of the thread running Alg. 2 (and of its pool): the live '
+                            'fit of every camera frame, in the same process, comes first, and Alg. 2 before the registration '
+                            '(registration_niceness, larger); 0 = same priority',
+                            (0, 19)),
     'joint_diameter': ('diameter of the joint spheres in skeleton/markers, m', (1e-4, 10.0)),
 }
 

@@ -83,7 +83,8 @@ NODE_ONLY = {'registration_node': {'queue_size': 1, 'learning_queue_size': 60, '
                                    'registration_niceness': 10, 'live_start': True},
              'accumulator_node': {'window_size': 60, 'sliding': False, 'stride': 30},
              'joint_estimation_node': {'buffer_size': 300, 'live_frames': 'camera', 'live_iterations': 3,
-                                       'live_sweeps': 2, 'joint_diameter': 0.04}}
+                                       'live_sweeps': 2, 'provisional_skeleton': True,
+                                       'estimation_niceness': 5, 'joint_diameter': 0.04}}
 
 
 def _method_values(values: dict, node: str) -> dict:

@@ -1,5 +1,8 @@
 """The nodes' one worker idiom: bounded waiting, counted drops, errors that do not end it."""
+import os
+import sys
 import threading
+from concurrent.futures import ThreadPoolExecutor
 
 import pytest
 
@@ -119,6 +122,35 @@ def test_an_item_that_raises_is_reported_and_the_worker_goes_on():
         assert (worker.processed, worker.failed) == (2, 1)
     finally:
         worker.stop()
+
+
+@pytest.mark.skipif(not sys.platform.startswith('linux'), reason='a nice value per thread is Linux')
+def test_a_nicer_worker_lowers_its_own_thread_and_the_threads_it_starts_not_the_caller():
+    """Alg. 2 runs on a worker with niceness, its pool started from that thread; the live
+    fit's thread in the same process keeps its priority."""
+    def nice_of_this_thread():
+        return os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+
+    caller = nice_of_this_thread()
+    seen = {}
+
+    def process(_item):
+        seen['worker'] = nice_of_this_thread()
+        with ThreadPoolExecutor(max_workers=1) as pool:      # as core.joints' E-step pool
+            seen['pool'] = pool.submit(nice_of_this_thread).result()
+
+    worker = Worker(process, 'nicer', niceness=5)
+    plain = Worker(lambda _item: seen.setdefault('plain', nice_of_this_thread()), 'plain')
+    try:
+        worker.submit('job')
+        plain.submit('job')
+        assert worker.wait_idle(5.0) and plain.wait_idle(5.0)
+        expected = min(caller + 5, 19)
+        assert seen == {'worker': expected, 'pool': expected, 'plain': caller}
+        assert nice_of_this_thread() == caller
+    finally:
+        worker.stop()
+        plain.stop()
 
 
 def test_an_error_handler_that_raises_does_not_end_the_worker(capsys):

@@ -105,15 +105,18 @@ def parse_structure(text: str) -> dict:
         raise ValueError(f'malformed skeleton/structure message: {error}') from None
 
 
-def description_document(model: SkeletonModel, frame_id: str, window_stamps_ns, changes: dict | None = None) -> dict:
+def description_document(model: SkeletonModel, frame_id: str, window_stamps_ns, changes: dict | None = None,
+                         provisional: bool = False) -> dict:
     """The skeleton/description JSON: joint_names (stable across updates), parents,
-    rest_positions, frame, the frames it was learned on, and what changed since the
-    previous description (joint names added / removed / reparented / moved)."""
+    rest_positions, frame, the frames it was learned on, what changed since the previous
+    description (joint names added / removed / reparented / moved) and whether it is
+    provisional (Step 2's skeleton, tracked while Alg. 2 runs; the next description
+    refines it under the same joint names)."""
     return {'frame_id': frame_id, 'joint_names': model.joint_names,
             'parents': [int(p) for p in model.parents],
             'rest_positions': np.round(model.rest_joints, 6).tolist(),
             'window_stamps_ns': [int(s) for s in window_stamps_ns],
-            'changes': changes or {}}
+            'changes': changes or {}, 'provisional': bool(provisional)}
 
 
 def pose_array(positions: np.ndarray, header: Header) -> PoseArray:

@@ -16,7 +16,9 @@ On a structure: Alg. 2 on the window's frames (found by stamp in a buffer of
 skeleton's key frames can be older than the buffer) on a Worker (nodes/worker.py: one at
 a time; a structure that arrives meanwhile waits, a newer one replaces it), then joints and
 markers for every window frame that has none yet. Joint names carry the structure's
-stable joint ids.
+stable joint ids. With live_frames camera and provisional_skeleton, Step 2's skeleton
+(each point on its bone) is described (`provisional: true`), published for the window and
+tracked live first, while Alg. 2 runs; Alg. 2's model then replaces it, same names.
 After that, live joints (`live_frames`):
 - camera (default): every filtered_points frame (the registration node publishes one per
   camera frame, before registering it) gets the learned model fitted to its subject
@@ -71,6 +73,7 @@ class JointEstimationNode(Node):
         self.params, values = declare_node_parameters(self, SECTION, JointParams, joint_params_from_dict)
         self.buffer_size, self.live_sweeps = values['buffer_size'], values['live_sweeps']
         self.joint_diameter = values['joint_diameter']
+        self.provisional_skeleton = values['provisional_skeleton']
         self.live_frames, self.live_iterations = values['live_frames'], values['live_iterations']
         if self.live_frames not in ('camera', 'registered'):
             raise ParameterError(f"parameter live_frames must be 'camera' or 'registered', got {self.live_frames!r}")
@@ -89,9 +92,12 @@ class JointEstimationNode(Node):
         self.tracker = None                  # LiveJointTracker of the current model
         self.camera = None                   # its CameraTracker (live_frames camera)
         self.model_parents = None
+        self._provisional = False            # the tracked model is Step 2's, Alg. 2 still running
         self.last_published = None           # stamp of the newest frame with joints published
         self._early_structure = None
-        self.estimator = Worker(self._estimate, 'joints', capacity=1, on_error=self._estimation_failed)
+        # Alg. 2 runs for seconds beside the live fit of every camera frame: below it
+        self.estimator = Worker(self._estimate, 'joints', capacity=1, on_error=self._estimation_failed,
+                                niceness=values['estimation_niceness'])
         self.live_ms = collections.deque(maxlen=1000)      # per live frame fit
         self.registered_rate, self.joints_rate = RateMeter(), RateMeter()
         self.live_fits = {'fitted': 0, 'lost': 0, 'registered': 0, 'too_few_points': 0}
@@ -238,18 +244,38 @@ class JointEstimationNode(Node):
         rotations, translations = fit_rigid_segments(rest, registered, labels, len(parents))
         structure = SkeletalStructure(labels, parents, rotations, translations, document['joints'],
                                       document['boundary_centroids'])
+        if self.provisional_skeleton and self.live_frames == 'camera':
+            # Step 2's skeleton, each point on its bone, is tracked while Alg. 2 runs (seconds):
+            # its joints score as Alg. 2's on the real-motion rows (bench/README.md). Alg. 2's
+            # model then replaces it under the same joint names. Not with live_frames
+            # registered: lossless replay publishes Alg. 2's joints for the window, as run does.
+            step2 = SkeletonModel(rest, labels, parents, structure.joints, labels[:, None].astype(np.int64),
+                                  np.ones((len(rest), 1)), document['joint_ids'])
+            self._serve(step2, document, stamps, frames, structure.joint_trajectories(), started, provisional=True)
         estimate = JointEstimation(self.params).fit(rest, registered, observed, structure)
         model = SkeletonModel(rest, labels, estimate.parents, estimate.joints, estimate.influences,
                               estimate.weights, document['joint_ids'])
+        self._serve(model, document, stamps, frames, estimate.joint_trajectories(), started)
+        release_freed_memory()
+
+    def _serve(self, model: SkeletonModel, document: dict, stamps: list, frames: list,
+               window_joints: np.ndarray, started: float, provisional: bool = False) -> None:
+        """Publish model's description, the joints (F, J, 3) m of the window frames that have
+        none yet, then track it live (on the registered frames without joints first).
+        provisional: Step 2's model, which Alg. 2's will replace."""
         tracker = LiveJointTracker(model, self.params, self.live_sweeps)
         camera = CameraTracker(ArticulatedTracker(model, self.params, iterations=self.live_iterations), tracker)
-        description = description_document(model, document['frame_id'], stamps, document['changes'])
+        with self._lock:
+            refining = self.tracker is not None and self._provisional
+        # the refinement of a provisional description lists no changes: same joints, same tree
+        changes = {} if refining and not provisional else document['changes']
+        description = description_document(model, document['frame_id'], stamps, changes, provisional)
         self.description_pub.publish(String(data=json.dumps(description)))
         with self._lock:
             done = self.last_published
         # a frame that already has joints (live, from the previous model) is not published
         # twice: a growing skeleton's key frames can be minutes old
-        for stamp, (header, _, _), positions in zip(stamps, frames, estimate.joint_trajectories()):
+        for stamp, (header, _, _), positions in zip(stamps, frames, window_joints):
             if done is None or stamp > done:
                 self._publish_joints(header, positions, model.parents)
         in_window = set(stamps)
@@ -262,13 +288,14 @@ class JointEstimationNode(Node):
             catch_up = [(s, v) for s, v in self.registered_only.items()
                         if (since is None or s > since) and s not in in_window]
             self.tracker, self.camera, self.model_parents = tracker, camera, model.parents
+            self._provisional = provisional
             published = [stamps[-1]] + [s for s, _ in catch_up[-1:]]
             self.last_published = max(published + [self.last_published or published[0]])
+        what = 'Step 2, provisional while Alg. 2 runs' if provisional else 'Alg. 2'
         self.get_logger().info(f'{model.n_joints} joints from {len(stamps)} frames in '
-                               f'{time.perf_counter() - started:.1f} s; publishing live joints'
+                               f'{time.perf_counter() - started:.1f} s ({what}); publishing live joints'
                                + (f' ({len(catch_up)} more frames tracked)' if catch_up else ''))
         self._publish_tracked(tracker, catch_up, model.parents)
-        release_freed_memory()
 
     # -- live --------------------------------------------------------------------------------
     def _publish_live(self) -> None:
@@ -331,9 +358,13 @@ class JointEstimationNode(Node):
         self.joints_pub.publish(pose_array(positions, header))
         self.markers_pub.publish(skeleton_markers(positions, parents, header, self.joint_diameter))
 
-    def destroy_node(self):
+    def stop_work(self) -> None:
+        """Stop Alg. 2's and the live fit's threads (not the ROS entities: destroy_node)."""
         self.estimator.stop()
         self.live.stop()
+
+    def destroy_node(self):
+        self.stop_work()
         return super().destroy_node()
 
 

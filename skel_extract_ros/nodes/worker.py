@@ -9,11 +9,12 @@ runs, a newer request replaces the waiting one). No rclpy: the callbacks stay ch
     >>> worker = Worker(fit_and_publish, name='live', capacity=1)
     >>> worker.submit(frame)        # from a subscription callback
     >>> worker.stats()              # submitted, processed, dropped, failed, latency ms
-    >>> worker.stop()               # in destroy_node
+    >>> worker.stop()               # in the node's stop_work
 """
 from __future__ import annotations
 
 import collections
+import os
 import threading
 import time
 import traceback
@@ -46,11 +47,16 @@ class RateMeter:
 
 class Worker:
     """process(item) on a thread named `name`; on_error(item, exception) is called (on the
-    worker thread) when process raises, and the worker goes on with the next item."""
+    worker thread) when process raises, and the worker goes on with the next item.
+    niceness: added to the thread's nice value when it starts (Linux keeps one per thread;
+    threads it starts inherit it): background learning below the live path of the same
+    process. Raising it needs no privilege; where it fails, the thread runs as it is."""
 
     def __init__(self, process: Callable, name: str, capacity: int = 1,
-                 on_error: Callable | None = None, history: int = 1000, keep: str = 'newest'):
+                 on_error: Callable | None = None, history: int = 1000, keep: str = 'newest',
+                 niceness: int = 0):
         self._process, self._on_error = process, on_error
+        self.niceness = int(niceness)
         self._waiting = collections.deque()
         self._wake = threading.Condition()
         self._stopping = False
@@ -158,6 +164,13 @@ class Worker:
             self._thread.join(timeout=timeout)
 
     def _run(self) -> None:
+        if self.niceness > 0:
+            thread_id = threading.get_native_id()
+            try:
+                os.setpriority(os.PRIO_PROCESS, thread_id,
+                               min(os.getpriority(os.PRIO_PROCESS, thread_id) + self.niceness, 19))
+            except (OSError, AttributeError):   # not Linux, or not allowed: at the process's priority
+                pass
         while True:
             with self._wake:
                 while not self._waiting and not self._stopping:
