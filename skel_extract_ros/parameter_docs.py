@@ -163,9 +163,8 @@ _JOINTS = {
                              'model then replaces it under the same joint names. false: the first joints wait '
                              'for Alg. 2 (seconds)', _ANY),
     'estimation_niceness': ('added to the nice value of the thread running Alg. 2 (and of its pool): the live '
-                            'fit of every camera frame, in the same process, comes first, and Alg. 2 before the registration '
-                            '(registration_niceness, larger); 0 = same priority',
-                            (0, 19)),
+                            'fit of every camera frame, in the same process, comes first, and Alg. 2 before the '
+                            'registration (registration_niceness, larger); 0 = same priority', (0, 19)),
     'joint_diameter': ('diameter of the joint spheres in skeleton/markers, m', (1e-4, 10.0)),
 }
 

@@ -254,3 +254,35 @@ def test_frames_arriving_during_alg2_are_caught_up(ros, monkeypatch):
     for i in range(12, 30):
         positions = np.array([[p.position.x, p.position.y, p.position.z] for p in by_stamp[T0 + i * DT].poses])
         assert np.linalg.norm(positions - joint_path[i], axis=1).min() < 2.3e-3
+
+
+def test_a_model_learned_for_a_replaced_rest_pose_is_not_used(ros, monkeypatch):
+    """A new rest pose (the subject started over) comes while Alg. 2 runs on the old one's
+    window: that model is neither described nor tracked (its points are the old rest
+    pose's, the frames to come are registered to the new one). The node waits for the new
+    rest pose's structure."""
+    import threading
+    from skel_extract_ros.core.joints import JointEstimation
+    from skel_extract_ros.nodes import joint_estimation_node
+    release = threading.Event()
+
+    class HeldJointEstimation(JointEstimation):
+        def fit(self, *args, **kwargs):
+            assert release.wait(60.0), 'Alg. 2 never released'
+            return super().fit(*args, **kwargs)
+    monkeypatch.setattr(joint_estimation_node, 'JointEstimation', HeldJointEstimation)
+    rest, registered, _, _, _ = two_bone_sequence(n_frames=12)
+    node = ros.add(JointEstimationNode, parameter_overrides=[Parameter('provisional_skeleton', value=False)])
+    descriptions = ros.listen('skeleton/description', String, LATCHED_QOS)
+    rest_pub = publish_rest(ros, rest)
+    publish_frames(ros, registered, 0)
+    ros.wait(lambda: len(node.buffer) == 12, what='the window buffered')
+    ros.publisher('skeleton/structure', String, LATCHED_QOS).publish(structure_message(rest, registered, 0))
+    ros.wait(lambda: node.estimating, what='Alg. 2 running')
+    new_rest = rest[::2]                         # another rest pose: other points, later stamp
+    rest_pub.publish(cloud_message(new_rest, header(T0 + 100 * DT), float64=True))
+    ros.wait(lambda: node.rest is not None and len(node.rest) == len(new_rest), what='the new rest pose')
+    release.set()
+    ros.wait(lambda: not node.estimating, what='Alg. 2 ending')
+    assert node.tracker is None and not descriptions
+    assert node._diagnostics()[1] == 'waiting for skeleton/structure'

@@ -249,7 +249,7 @@ class JointEstimationNode(Node):
             # its joints score as Alg. 2's on the real-motion rows (bench/README.md). Alg. 2's
             # model then replaces it under the same joint names. Not with live_frames
             # registered: lossless replay publishes Alg. 2's joints for the window, as run does.
-            step2 = SkeletonModel(rest, labels, parents, structure.joints, labels[:, None].astype(np.int64),
+            step2 = SkeletonModel(rest, labels, parents, structure.joints, labels[:, None],
                                   np.ones((len(rest), 1)), document['joint_ids'])
             self._serve(step2, document, stamps, frames, structure.joint_trajectories(), started, provisional=True)
         estimate = JointEstimation(self.params).fit(rest, registered, observed, structure)
@@ -263,6 +263,15 @@ class JointEstimationNode(Node):
         """Publish model's description, the joints (F, J, 3) m of the window frames that have
         none yet, then track it live (on the registered frames without joints first).
         provisional: Step 2's model, which Alg. 2's will replace."""
+        with self._lock:
+            stale = self.rest is not model.rest_points
+        if stale:
+            # a new rest pose came while this window's model was learned: its frames are
+            # another subject's (or the same one started over), and the next structure's
+            # model serves them
+            self.get_logger().info('a new rest pose came while the joints were estimated: this model '
+                                   'is not used')
+            return
         tracker = LiveJointTracker(model, self.params, self.live_sweeps)
         camera = CameraTracker(ArticulatedTracker(model, self.params, iterations=self.live_iterations), tracker)
         with self._lock:
