@@ -49,6 +49,25 @@ def ros():
     harness.close()
 
 
+@pytest.fixture
+def held_alg2(monkeypatch):
+    """The joint node's Alg. 2 waits until the test sets the returned threading.Event (it
+    takes seconds for real; a test holding it knows what arrives meanwhile)."""
+    import threading
+
+    from skel_extract_ros.core.joints import JointEstimation
+    from skel_extract_ros.nodes import joint_estimation_node
+    release = threading.Event()
+
+    class HeldJointEstimation(JointEstimation):
+        def fit(self, *args, **kwargs):
+            assert release.wait(60.0), 'the test never released Alg. 2'
+            return super().fit(*args, **kwargs)
+    monkeypatch.setattr(joint_estimation_node, 'JointEstimation', HeldJointEstimation)
+    yield release
+    release.set()          # a node still waiting ends with the test
+
+
 def check_sample_scores(report: dict) -> None:
     """The sample bag's scores (`skel-extract evaluate --json`), by `run` and by `replay`
     alike: bounds close to what is measured (repeatable run to run), so a regression shows.

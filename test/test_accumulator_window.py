@@ -218,20 +218,10 @@ def test_joint_node_follows_a_growing_structure_with_old_key_frames_and_stable_n
     assert sorted(stamps_of(joints)) == [T0 + i * DT for i in range(16)]   # none twice
 
 
-def test_frames_arriving_during_alg2_are_caught_up(ros, monkeypatch):
+def test_frames_arriving_during_alg2_are_caught_up(ros, held_alg2):
     """Frames 12-29 arrive while Alg. 2 runs on the window 0-11 (held until all of them are
     in, so the order is certain): when it ends they get live joints, no later frame needed
     to trigger them. A node that only tracked frames arriving after Alg. 2 would publish 12."""
-    import threading
-    from skel_extract_ros.core.joints import JointEstimation
-    from skel_extract_ros.nodes import joint_estimation_node
-    release = threading.Event()
-
-    class HeldJointEstimation(JointEstimation):
-        def fit(self, *args, **kwargs):
-            assert release.wait(60.0), 'Alg. 2 never released'
-            return super().fit(*args, **kwargs)
-    monkeypatch.setattr(joint_estimation_node, 'JointEstimation', HeldJointEstimation)
     rest, registered, _, joint, joint_path = two_bone_sequence(n_frames=30)
     # Alg. 2's own catch-up (the provisional Step 2 model's is in test_nodes)
     node = ros.add(JointEstimationNode, parameter_overrides=[Parameter('provisional_skeleton', value=False)])
@@ -245,7 +235,7 @@ def test_frames_arriving_during_alg2_are_caught_up(ros, monkeypatch):
     publish_frames(ros, registered[12:], 12)             # while Alg. 2 runs
     ros.wait(lambda: len(node.registered_only) == 30, what='every frame received during Alg. 2')
     assert not joints and node.estimating
-    release.set()
+    held_alg2.set()
     ros.wait(lambda: len(joints) == 30, what='joints for every frame')
     assert sorted(stamps_of(joints)) == [T0 + i * DT for i in range(30)]
     # the caught-up frames are tracked: one of the two joints follows the true joint
@@ -256,21 +246,11 @@ def test_frames_arriving_during_alg2_are_caught_up(ros, monkeypatch):
         assert np.linalg.norm(positions - joint_path[i], axis=1).min() < 2.3e-3
 
 
-def test_a_model_learned_for_a_replaced_rest_pose_is_not_used(ros, monkeypatch):
+def test_a_model_learned_for_a_replaced_rest_pose_is_not_used(ros, held_alg2):
     """A new rest pose (the subject started over) comes while Alg. 2 runs on the old one's
     window: that model is neither described nor tracked (its points are the old rest
     pose's, the frames to come are registered to the new one). The node waits for the new
     rest pose's structure."""
-    import threading
-    from skel_extract_ros.core.joints import JointEstimation
-    from skel_extract_ros.nodes import joint_estimation_node
-    release = threading.Event()
-
-    class HeldJointEstimation(JointEstimation):
-        def fit(self, *args, **kwargs):
-            assert release.wait(60.0), 'Alg. 2 never released'
-            return super().fit(*args, **kwargs)
-    monkeypatch.setattr(joint_estimation_node, 'JointEstimation', HeldJointEstimation)
     rest, registered, _, _, _ = two_bone_sequence(n_frames=12)
     node = ros.add(JointEstimationNode, parameter_overrides=[Parameter('provisional_skeleton', value=False)])
     descriptions = ros.listen('skeleton/description', String, LATCHED_QOS)
@@ -282,7 +262,7 @@ def test_a_model_learned_for_a_replaced_rest_pose_is_not_used(ros, monkeypatch):
     new_rest = rest[::2]                         # another rest pose: other points, later stamp
     rest_pub.publish(cloud_message(new_rest, header(T0 + 100 * DT), float64=True))
     ros.wait(lambda: node.rest is not None and len(node.rest) == len(new_rest), what='the new rest pose')
-    release.set()
+    held_alg2.set()
     ros.wait(lambda: not node.estimating, what='Alg. 2 ending')
     assert node.tracker is None and not descriptions
     assert node._diagnostics()[1] == 'waiting for skeleton/structure'

@@ -2,7 +2,6 @@
 import json
 import os
 import signal
-import threading
 
 import numpy as np
 import pytest
@@ -23,7 +22,6 @@ from skel_extract_ros.core.structure import StructureParams, extract_structure
 from skel_extract_ros.nodes.accumulator_node import AccumulatorNode
 from skel_extract_ros.nodes.common import LATCHED_QOS, STREAM_QOS, ParameterError
 from skel_extract_ros.nodes.conversions import cloud_message, structure_document
-from skel_extract_ros.nodes import joint_estimation_node
 from skel_extract_ros.nodes.joint_estimation_node import JointEstimationNode
 from skel_extract_ros.nodes.registration_node import RegistrationNode
 from skel_extract_ros.pointcloud import decode_xyz
@@ -403,6 +401,18 @@ def test_joint_estimation_node_window_then_live(ros):
     assert np.linalg.norm(live - joint_path[12:], axis=1).max() < 3e-3
 
 
+def _learn_frames_0_to_11_with_12_registered_after(ros, node, rest, registered):
+    """Rest pose, frames 0-12 registered and filtered, then the structure of frames 0-11:
+    frame 12 was registered while the structure was extracted."""
+    rest_pub = _publish_rest(ros, rest)
+    ros.wait_matched(rest_pub)
+    _publish_two_bone(ros, rest, registered[:13])
+    ros.wait(lambda: len(node.buffer) == 13, what='the window frames buffered')
+    structure = extract_structure(rest, registered[:12], StructureParams(n_clusters=12))
+    document = structure_document(structure, T0, [T0 + i * DT for i in range(12)], 'camera_depth_optical_frame')
+    ros.publisher('skeleton/structure', String, LATCHED_QOS).publish(String(data=json.dumps(document)))
+
+
 def test_joint_estimation_node_live_camera_frames_do_not_wait_for_registration(ros):
     """live_frames camera (the default): once the model exists, camera frames (filtered_points)
     get joints from the model fitted to their points, with no registered frame after the
@@ -417,13 +427,7 @@ def test_joint_estimation_node_live_camera_frames_do_not_wait_for_registration(r
     joints = ros.listen('skeleton/joints', PoseArray, STREAM_QOS)
     description = ros.listen('skeleton/description', String, LATCHED_QOS)
     posed = ros.listen('skeleton/posed_points', PointCloud2, STREAM_QOS)
-    rest_pub = _publish_rest(ros, rest)
-    ros.wait_matched(rest_pub)
-    _publish_two_bone(ros, rest, registered[:13])
-    ros.wait(lambda: len(node.buffer) == 13, what='the window frames buffered')
-    structure = extract_structure(rest, registered[:12], StructureParams(n_clusters=12))
-    document = structure_document(structure, T0, [T0 + i * DT for i in range(12)], 'camera_depth_optical_frame')
-    ros.publisher('skeleton/structure', String, LATCHED_QOS).publish(String(data=json.dumps(document)))
+    _learn_frames_0_to_11_with_12_registered_after(ros, node, rest, registered)
     # the window's frames from Alg. 2, and frame 12 (registered while Alg. 2 ran) caught up
     ros.wait(lambda: len(joints) == 13, what='joints for every window frame and the one after it')
     # the bounds below are Alg. 2's model's (its provisional Step 2 model has a test of its own)
@@ -459,31 +463,17 @@ def test_joint_estimation_node_live_camera_frames_do_not_wait_for_registration(r
     assert posed_error.mean() < 0.85 * held_points.mean(), (posed_error, held_points)
 
 
-def test_joint_estimation_node_tracks_the_step2_skeleton_while_alg2_runs(ros, monkeypatch):
+def test_joint_estimation_node_tracks_the_step2_skeleton_while_alg2_runs(ros, held_alg2):
     """live_frames camera: a structure gives a provisional description (Step 2's joints, each
     point on its bone) and live joints at once, while Alg. 2 runs; Alg. 2's description then
     refines it under the same joint names and takes over the live frames. No frame gets
     joints twice, and none is left out."""
     rest, registered, _, _, joint_path = two_bone_sequence(n_frames=24)
-    alg2_may_finish = threading.Event()
-    original_fit = joint_estimation_node.JointEstimation.fit
-
-    def held_fit(self, *args, **kwargs):      # Alg. 2 "takes seconds" until the test says so
-        assert alg2_may_finish.wait(30), 'the test never released Alg. 2'
-        return original_fit(self, *args, **kwargs)
-
-    monkeypatch.setattr(joint_estimation_node.JointEstimation, 'fit', held_fit)
     node = ros.add(JointEstimationNode)
     assert node.provisional_skeleton
     joints = ros.listen('skeleton/joints', PoseArray, STREAM_QOS)
     description = ros.listen('skeleton/description', String, LATCHED_QOS)
-    rest_pub = _publish_rest(ros, rest)
-    ros.wait_matched(rest_pub)
-    _publish_two_bone(ros, rest, registered[:13])
-    ros.wait(lambda: len(node.buffer) == 13, what='the window frames buffered')
-    structure = extract_structure(rest, registered[:12], StructureParams(n_clusters=12))
-    document = structure_document(structure, T0, [T0 + i * DT for i in range(12)], 'camera_depth_optical_frame')
-    ros.publisher('skeleton/structure', String, LATCHED_QOS).publish(String(data=json.dumps(document)))
+    _learn_frames_0_to_11_with_12_registered_after(ros, node, rest, registered)
     ros.wait(lambda: len(joints) == 13 and len(description) == 1, what='the provisional skeleton')
     provisional = json.loads(description[0].data)
     assert provisional['provisional'] is True and provisional['changes'] == {}
@@ -504,7 +494,7 @@ def test_joint_estimation_node_tracks_the_step2_skeleton_while_alg2_runs(ros, mo
     # against 13.1 mm held: the fit follows the bend, as Alg. 2's model does
     assert live_error[0] < 0.7 * held_error[0], (live_error, held_error)
     assert live_error.mean() < 0.85 * held_error.mean(), (live_error, held_error)
-    alg2_may_finish.set()
+    held_alg2.set()
     ros.wait(lambda: len(description) == 2 and not node.estimating, what="Alg. 2's description")
     refined = json.loads(description[1].data)
     assert refined['provisional'] is False and refined['changes'] == {}
