@@ -129,13 +129,12 @@ def test_run_node_stops_the_nodes_work_and_leaves_its_entities_to_the_context(mo
     destroy_node is not called: it wakes the executor that rclpy's signal thread is
     shutting down, and a node hung there (the accumulator, twice in benchmark replays)."""
     import rclpy
-    from rclpy.node import Node
 
-    from skel_extract_ros.nodes.common import run_node
+    from skel_extract_ros.nodes.common import WorkingNode, run_node
 
     calls = []
 
-    class Worked(Node):
+    class Worked(WorkingNode):
         def stop_work(self):
             calls.append('stop_work')
 

@@ -22,7 +22,6 @@ import threading
 import time
 
 import numpy as np
-from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
@@ -30,7 +29,7 @@ from std_srvs.srv import Trigger
 from ..core.growth import SkeletonGrowth
 from ..core.structure import StructureError, StructureParams
 from ..params import structure_params_from_dict
-from .common import (LATCHED_QOS, STREAM_QOS, StampPairer, ThrottledLog, declare_node_parameters,
+from .common import (LATCHED_QOS, STREAM_QOS, StampPairer, ThrottledLog, WorkingNode, declare_node_parameters,
                      decode_or_warn, decode_registered_or_warn, release_freed_memory, run_node)
 from .conversions import stamp_ns, structure_document
 from .diagnostics import OK, WARN, NodeDiagnostics
@@ -39,7 +38,7 @@ from .worker import RateMeter, Worker
 SECTION = 'accumulator_node'
 
 
-class AccumulatorNode(Node):
+class AccumulatorNode(WorkingNode):
     def __init__(self, **kwargs):
         super().__init__('accumulator_node', **kwargs)
         self.params, values = declare_node_parameters(self, SECTION, StructureParams, structure_params_from_dict)
@@ -211,10 +210,6 @@ class AccumulatorNode(Node):
     def stop_work(self) -> None:
         """Stop the extraction thread (not the ROS entities: destroy_node)."""
         self.extractor.stop()
-
-    def destroy_node(self):
-        self.stop_work()
-        return super().destroy_node()
 
 
 def main(args=None) -> int:

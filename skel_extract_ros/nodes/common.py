@@ -10,6 +10,7 @@ import typing
 
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
+from rclpy.node import Node
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
                        qos_profile_sensor_data)
 
@@ -24,6 +25,19 @@ STREAM_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=200, reliability=
 # Latched: a node (or RViz) that starts later still gets the current skeleton / rest pose.
 LATCHED_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+class WorkingNode(Node):
+    """A node with threads or child processes of its own. `stop_work` stops them: run_node
+    calls it on the way out and leaves the ROS entities to the context (see there);
+    destroy_node (the in-process tests) stops them too, then destroys the entities."""
+
+    def stop_work(self) -> None:
+        raise NotImplementedError
+
+    def destroy_node(self):
+        self.stop_work()
+        return super().destroy_node()
 
 
 class ParameterError(ValueError):
@@ -202,7 +216,7 @@ def run_node(node_factory, args=None) -> int:
         if rclpy.ok():
             raise
     finally:
-        if node is not None and hasattr(node, 'stop_work'):
+        if isinstance(node, WorkingNode):
             node.stop_work()
         rclpy.try_shutdown()
     return 0

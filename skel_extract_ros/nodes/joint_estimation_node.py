@@ -44,7 +44,6 @@ import time
 
 import numpy as np
 from geometry_msgs.msg import PoseArray
-from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import String
 from visualization_msgs.msg import MarkerArray
@@ -56,7 +55,7 @@ from ..core.rigid import fit_rigid_segments
 from ..core.skeleton_model import SkeletonModel
 from ..core.structure import SkeletalStructure
 from ..params import joint_params_from_dict
-from .common import (LATCHED_QOS, STREAM_QOS, ParameterError, StampPairer, ThrottledLog,
+from .common import (LATCHED_QOS, STREAM_QOS, ParameterError, StampPairer, ThrottledLog, WorkingNode,
                      declare_node_parameters, decode_or_warn, decode_registered_or_warn, release_freed_memory,
                      run_node)
 from .conversions import (cloud_message, description_document, parse_structure, pose_array,
@@ -67,7 +66,7 @@ from .worker import RateMeter, Worker
 SECTION = 'joint_estimation_node'
 
 
-class JointEstimationNode(Node):
+class JointEstimationNode(WorkingNode):
     def __init__(self, **kwargs):
         super().__init__('joint_estimation_node', **kwargs)
         self.params, values = declare_node_parameters(self, SECTION, JointParams, joint_params_from_dict)
@@ -371,10 +370,6 @@ class JointEstimationNode(Node):
         """Stop Alg. 2's and the live fit's threads (not the ROS entities: destroy_node)."""
         self.estimator.stop()
         self.live.stop()
-
-    def destroy_node(self):
-        self.stop_work()
-        return super().destroy_node()
 
 
 def main(args=None) -> int:

@@ -51,7 +51,6 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
@@ -64,7 +63,7 @@ from ..core.sequence import PARTIAL_VIEW_PATIENCE_FRAMES, waits_for_subject
 from ..depth_image import DepthDecodeError, depth_to_cloud
 from ..params import NODE_ONLY, registration_params_from_dict
 from ..pointcloud import CloudDecodeError, decode_xyz
-from .common import (LATCHED_QOS, SENSOR_QOS, STREAM_QOS, ParameterError, ThrottledLog, declare,
+from .common import (LATCHED_QOS, SENSOR_QOS, STREAM_QOS, ParameterError, ThrottledLog, WorkingNode, declare,
                      declare_dataclass, decode_or_warn, release_freed_memory, run_node)
 from .conversions import cloud_message, stamp_ns
 from .diagnostics import OK, WARN, NodeDiagnostics
@@ -91,7 +90,7 @@ class _SubjectFrame:
     segmentation: object
 
 
-class RegistrationNode(Node):
+class RegistrationNode(WorkingNode):
     def __init__(self, **kwargs):
         super().__init__('registration_node', **kwargs)
         values = declare_dataclass(self, SECTION, RegistrationParams)
@@ -512,10 +511,6 @@ class RegistrationNode(Node):
         self.camera.stop()
         self.registration_process.close()
         self.rest_pose_process.close()
-
-    def destroy_node(self):
-        self.stop_work()
-        return super().destroy_node()
 
 
 def main(args=None) -> int:
