@@ -264,6 +264,7 @@ class JointEstimationNode(WorkingNode):
         provisional: Step 2's model, which Alg. 2's will replace."""
         with self._lock:
             stale = self.rest is not model.rest_points
+            refining = self.tracker is not None and self._provisional
         if stale:
             # a new rest pose came while this window's model was learned: its frames are
             # another subject's (or the same one started over), and the next structure's
@@ -273,8 +274,6 @@ class JointEstimationNode(WorkingNode):
             return
         tracker = LiveJointTracker(model, self.params, self.live_sweeps)
         camera = CameraTracker(ArticulatedTracker(model, self.params, iterations=self.live_iterations), tracker)
-        with self._lock:
-            refining = self.tracker is not None and self._provisional
         # the refinement of a provisional description lists no changes: same joints, same tree
         changes = {} if refining and not provisional else document['changes']
         description = description_document(model, document['frame_id'], stamps, changes, provisional)
