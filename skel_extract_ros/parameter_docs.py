@@ -99,6 +99,12 @@ _REGISTRATION = {
                               'joint fit) go first and growing the skeleton waits; while learning the first '
                               'window it runs at the node\'s priority; 0 = never lowered (nor with lossless)',
                               (0, 19)),
+    'registration_sched_idle': ('when the priority of the child running Alg. 1 is lowered '
+                                '(registration_niceness), it also enters Linux\'s idle scheduling class '
+                                '(SCHED_IDLE): it gets a core only when no other task wants it, so the live '
+                                'path never waits for the scheduler to preempt it (at 30 Hz on 2 cores: '
+                                'latency p95 65-73 -> 47-56 ms on the cow) and growing the skeleton uses the '
+                                'idle CPU; false = the nice value only', _ANY),
     'lossless': ('never skip a cloud: when registration falls behind, segmentation waits for it and '
                  'so does the input (bag replay with input_reliability reliable; replay sets it)', _ANY),
     'live_start': ('once a skeleton is tracked, register each frame starting from the joint node\'s '

@@ -80,7 +80,8 @@ def _build(cls, values: dict, where: str):
 # Their defaults live here (the method's live in the core dataclasses).
 NODE_ONLY = {'registration_node': {'queue_size': 1, 'learning_queue_size': 60, 'lossless': False,
                                    'input_reliability': 'best_effort', 'input': 'cloud',
-                                   'registration_niceness': 10, 'live_start': True},
+                                   'registration_niceness': 10, 'registration_sched_idle': True,
+                                   'live_start': True},
              'accumulator_node': {'window_size': 60, 'sliding': False, 'stride': 30},
              'joint_estimation_node': {'buffer_size': 300, 'live_frames': 'camera', 'live_iterations': 3,
                                        'live_sweeps': 2, 'provisional_skeleton': True,

@@ -193,6 +193,7 @@ def test_registration_runs_nicer_once_the_first_window_is_learned_and_survives_i
     # skeleton/description does the same, for a joint node started without an accumulator)
     ros.publisher('skeleton/structure', String, LATCHED_QOS).publish(String(data='{}'))
     ros.wait(lambda: node.registration_process.nice == min(base + 7, 19), what='the lowered priority')
+    assert node.registration_process.in_idle_class            # registration_sched_idle's default
     # the child dies (out of memory, killed): said, a new child, a new rest pose
     os.kill(node.registration_process.pid, signal.SIGKILL)
     pub.publish(cloud(arm.clouds[1], arm.stamps_ns[1]))
@@ -202,6 +203,7 @@ def test_registration_runs_nicer_once_the_first_window_is_learned_and_survives_i
     ros.wait(lambda: len(rests) == 2 and len(registered) == 2, what='a new rest pose and frame')
     assert stamps_of(rests)[-1] == stamps_of(registered)[-1] == arm.stamps_ns[2]
     assert node.registration_process.nice == base            # learning the new one first
+    assert not node.registration_process.in_idle_class
     assert ros.spinning()
 
 

@@ -9,7 +9,8 @@ Subscribes  points            sensor_msgs/PointCloud2  sensor-data QoS (best eff
             skeleton/structure, skeleton/description std_msgs/String (transient local): the
                               first window is learned (the joint node's Alg. 2 comes next)
                               or a skeleton is tracked; from then on Alg. 1 runs
-                              registration_niceness nicer
+                              registration_niceness nicer (and with registration_sched_idle
+                              in the idle scheduling class)
             skeleton/posed_points PointCloud2 (M points, from the joint node): the live fit's
                               pose of a recent camera frame; with live_start the next frame
                               is registered from it, not from the last registered frame
@@ -40,8 +41,9 @@ at camera rate whatever registration costs:
   bag replay with reliable input). The rest pose waits until the subject is wholly in
   view. Alg. 1 itself runs in a child process (nodes/registration_process.py): it never
   takes the GIL from the camera stage, and once the first window is learned
-  (skeleton/structure) it runs `registration_niceness` nicer, so when the cores are short
-  the joint node's Alg. 2 and then the live path go first, and growing the skeleton waits.
+  (skeleton/structure) it runs `registration_niceness` nicer and, with
+  `registration_sched_idle`, in the idle scheduling class, so when the cores are short the
+  joint node's Alg. 2 and then the live path go first, and growing the skeleton waits.
   A new rest pose (reset, stamps going back) starts a new child at full priority.
 """
 from __future__ import annotations
@@ -109,6 +111,7 @@ class RegistrationNode(WorkingNode):
         if self.input not in ('cloud', 'depth_image'):
             raise ParameterError(f"parameter input must be 'cloud' or 'depth_image', got {self.input!r}")
         niceness = declare(self, SECTION, 'registration_niceness', NODE_ONLY[SECTION]['registration_niceness'])
+        sched_idle = declare(self, SECTION, 'registration_sched_idle', NODE_ONLY[SECTION]['registration_sched_idle'])
         self.live_start = declare(self, SECTION, 'live_start', NODE_ONLY[SECTION]['live_start'])
         try:
             (self.params, self.rest_params, self.preprocess_params,
@@ -138,7 +141,7 @@ class RegistrationNode(WorkingNode):
         # stage starts over when a cloud of a newer epoch reaches it (skips cannot lose it)
         self.epoch, self._registration_epoch = 0, 0
         self._start_camera()
-        self.registration_process = RegistrationProcess(niceness)
+        self.registration_process = RegistrationProcess(niceness, sched_idle)
         self.rest_pose_process = RestPoseProcess()
         self._start_registration()
         self._done = 0                 # clouds finished by either stage (tests, diagnostics)
@@ -250,8 +253,9 @@ class RegistrationNode(WorkingNode):
             release_freed_memory()
         if not self.registration_process.lowered:
             self.registration_process.lower_priority()
+            idle = ' in the idle scheduling class' if self.registration_process.in_idle_class else ''
             self.get_logger().info(f'the skeleton is learned: registration runs at nice '
-                                   f'{self.registration_process.nice} and takes the newest frames '
+                                   f'{self.registration_process.nice}{idle} and takes the newest frames '
                                    'from now on')
 
     def _learn(self) -> None:
@@ -351,6 +355,7 @@ class RegistrationNode(WorkingNode):
             'failed': camera['failed'] + registration['failed'], 'waiting': registration['waiting'],
             'queue_size': self.registrar.capacity, 'lossless': self.lossless,
             'registration_nice': self.registration_process.nice,
+            'registration_sched_idle': self.registration_process.in_idle_class,
             'registered_from_live_pose': self.registered_from_live_pose,
             # readers matched to both outputs (DDS drops what a volatile writer sends before)
             'outputs_matched': min(self.registered_pub.get_subscription_count(),

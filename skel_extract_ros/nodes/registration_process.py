@@ -7,8 +7,9 @@ in the node's own process it holds the GIL most of the time, so the camera stage
 numpy call. In its own process it no longer shares a GIL, and its priority can be set
 apart from the live path's: while the skeleton is learned, registration is all that
 matters and runs at the node's priority; once the skeleton is tracked, `lower_priority`
-makes the scheduler give a short CPU to learning, not to the live path (measured at 30 Hz
-on 2 cores, bench/README.md "Registration in its own process").
+makes the scheduler give a short CPU to learning, not to the live path (nicer, and in the
+idle scheduling class: measured at 30 Hz on 2 cores, bench/README.md "Registration in its
+own process" and "Registration in the idle class").
 
 Why not multiprocessing: its spawn start imports the node's main module again in the child
 (rclpy and the message packages, about 20 MB), adds a resource-tracker process (13 MB) and
@@ -97,14 +98,20 @@ class _Child:
 class RegistrationProcess:
     """A NonRigidRegistration run in one child process.
 
-    niceness: what `lower_priority` adds to the child's nice value (0 = none; 19 = only
-    idle CPU). The child starts at once, at the node's priority. Calls block the calling
+    niceness: what `lower_priority` adds to the child's nice value (0 = none).
+    sched_idle: `lower_priority` also puts the child in Linux's idle scheduling class
+    (SCHED_IDLE): it runs when no other task wants the core. A nice value only shares the
+    cores in proportion; a live-path thread that wakes while the nicer child runs still
+    waited for the scheduler to preempt it (the cow at 30 Hz on 2 cores: camera stage 26
+    ms against 20.5 ms of its own CPU; bench/README.md "Registration in the idle class").
+    The child starts at once, at the node's priority. Calls block the calling
     thread (not the GIL) until the child answers; a child that died (out of memory, killed)
     raises ChildProcessDied, and `restart` gives a new one.
     """
 
-    def __init__(self, niceness: int = 0):
+    def __init__(self, niceness: int = 0, sched_idle: bool = False):
         self.niceness = int(niceness)
+        self.sched_idle = bool(sched_idle)
         self._start()
 
     def _start(self) -> None:
@@ -113,18 +120,32 @@ class RegistrationProcess:
         self.lowered = False
 
     def lower_priority(self) -> None:
-        """Add `niceness` to the child's nice value (once; a new child starts at the node's)."""
-        if self.lowered or self.niceness == 0:
+        """Add `niceness` to the child's nice value and, with `sched_idle`, put it in the
+        idle scheduling class (once; a new child starts at the node's priority)."""
+        if self.lowered or (self.niceness == 0 and not self.sched_idle):
             return
         value = min(os.getpriority(os.PRIO_PROCESS, 0) + self.niceness, 19)
-        # Linux keeps a nice value per thread: set it on every thread of the child (numpy's
-        # BLAS threads start with it); raising it needs no privilege
+        # Linux keeps a nice value and a policy per thread: set them on every thread of the
+        # child (threads it starts later inherit them); lowering either needs no privilege
         try:
             for task in os.listdir(f'/proc/{self.pid}/task'):
                 os.setpriority(os.PRIO_PROCESS, int(task), value)
+                if self.sched_idle:
+                    try:
+                        os.sched_setscheduler(int(task), os.SCHED_IDLE, os.sched_param(0))
+                    except (AttributeError, PermissionError):  # not Linux, or refused: the nice value only
+                        pass
         except (FileNotFoundError, ProcessLookupError):
             return       # the child is gone: the next call says so
         self.lowered = True
+
+    @property
+    def in_idle_class(self) -> bool:
+        """The child runs in the idle scheduling class (False if it is gone)."""
+        try:
+            return os.sched_getscheduler(self.pid) == os.SCHED_IDLE
+        except (AttributeError, OSError):
+            return False
 
     @property
     def nice(self) -> int | None:
