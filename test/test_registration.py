@@ -41,6 +41,9 @@ def test_rotation_closed_form_is_the_so3_maximiser():
     # one (3, 3) matrix takes its own path: the batched result, det correction included
     for single in [*H[:20], -np.eye(3), np.diag([1.0, 1.0, -1.0])]:
         np.testing.assert_allclose(rotations_from_h(single), rotations_from_h(single[None])[0], atol=1e-12)
+    # and fails as numpy's SVD does on a matrix LAPACK cannot decompose
+    with pytest.raises(np.linalg.LinAlgError):
+        rotations_from_h(np.full((3, 3), np.nan))
 
 
 def test_kabsch_special_case_recovers_a_known_rotation():

@@ -120,7 +120,20 @@ class _BoneBlocks:
             links += [(int(child), self._joints[child]) for child in np.flatnonzero(self._parents == bone)]
             others = np.array([k for k, _ in links], dtype=int)
             centres = np.array([c for _, c in links]).reshape(-1, 3)
-            self._bones.append((m, slot, self._weights[m, slot], rest[m], others, centres, centres.sum(axis=0)))
+            self._bones.append((m, slot, self._weights[m, slot], rest[m], others, centres))
+        # the same points flattened in bone order (bone b's are entries start[b]:start[b + 1]):
+        # what a sweep's point weights fix (each bone's lambda total, mu_a, weighted rest
+        # points) is computed for all bones at once, not in the per-bone loop
+        sizes = [len(b[0]) for b in self._bones]
+        self._entry_start = np.concatenate([[0], np.cumsum(sizes)]).astype(int)
+        self._entry_point = np.concatenate([b[0] for b in self._bones]).astype(int)
+        self._entry_weight = np.concatenate([b[2] for b in self._bones]).astype(np.float64)
+        self._entry_rest = np.concatenate([b[3] for b in self._bones]).reshape(-1, 3)
+        # (B, E) one-hot, row b sums bone b's entries (B bones x a few entries a model point)
+        bone_of_entry = np.repeat(np.arange(len(sizes)), sizes)
+        self._entry_sum = (bone_of_entry[None, :] == np.arange(len(sizes))[:, None]).astype(np.float64)
+        self._link_counts = np.array([len(b[4]) for b in self._bones], dtype=np.float64)
+        self._centre_sums = np.array([b[5].sum(axis=0) for b in self._bones]).reshape(-1, 3)
 
     @property
     def n_bones(self) -> int:
@@ -146,19 +159,28 @@ class _BoneBlocks:
         point_weights = np.broadcast_to(np.asarray(point_weights, dtype=np.float64), (len(self._rest),))
         contributions = self._contributions(rotations, translations)
         deformed = contributions.sum(axis=1)
+        # what the point weights fix for the whole sweep, every bone at once: lambda / w and
+        # lambda per entry, each bone's lambda total and mu_a, the weighted rest points
+        weight_w = point_weights[self._entry_point] * self._entry_weight            # (E,)
+        lam = weight_w * self._entry_weight
+        lam_totals = self._entry_sum @ lam + alpha * self._link_counts + gamma       # (B,)
+        mu_as = (self._entry_sum @ (lam[:, None] * self._entry_rest)
+                 + alpha * self._centre_sums) / lam_totals[:, None]                  # (B, 3)
+        weighted_rest = weight_w[:, None] * self._entry_rest                         # (E, 3)
+        entry_targets = targets[self._entry_point]                                   # (E, 3)
+        start = self._entry_start
         for _ in range(self.sweeps):
             # (per-bone numpy calls on small arrays: the cheapest forms are used, this runs
             # for every bone of every live frame)
-            for bone, (m, slot, w, q, others, centres, centre_sum) in enumerate(self._bones):
+            for bone, (m, slot, w, q, others, centres) in enumerate(self._bones):
+                span = slice(start[bone], start[bone + 1])
                 anchor_r = rotations[bone] if anchors is None else anchors[0][bone]
                 anchor_t = translations[bone] if anchors is None else anchors[1][bone]
-                weight_w = point_weights[m] * w                                     # lambda / w
-                lam_total = weight_w @ w + alpha * len(others) + gamma
-                mu_a = ((weight_w * w) @ q + alpha * centre_sum) / lam_total
-                residual = targets[m] - (deformed[m] - contributions[m, slot])      # = w b
+                lam_total, mu_a = lam_totals[bone], mu_as[bone]
+                residual = entry_targets[span] - (deformed[m] - contributions[m, slot])   # = w b
                 carried = (rotations[others] @ centres[:, :, None])[:, :, 0] + translations[others]
-                mu_b = (weight_w @ residual + alpha * carried.sum(axis=0) + gamma * anchor_t) / lam_total
-                Z = ((weight_w[:, None] * q).T @ residual + alpha * centres.T @ carried
+                mu_b = (weight_w[span] @ residual + alpha * carried.sum(axis=0) + gamma * anchor_t) / lam_total
+                Z = (weighted_rest[span].T @ residual + alpha * centres.T @ carried
                      - lam_total * mu_a[:, None] * mu_b[None, :] + gamma * anchor_r.T)
                 R = rotations_from_h(Z)
                 rotations[bone], translations[bone] = R, mu_b - R @ mu_a
