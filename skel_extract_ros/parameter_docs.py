@@ -103,7 +103,7 @@ _REGISTRATION = {
                                 '(registration_niceness), it also enters Linux\'s idle scheduling class '
                                 '(SCHED_IDLE): it gets a core only when no other task wants it, so the live '
                                 'path never waits for the scheduler to preempt it (at 30 Hz on 2 cores: '
-                                'latency p95 65-73 -> 47-56 ms on the cow) and growing the skeleton uses the '
+                                'latency p95 68-73 -> 47-56 ms on the cow) and growing the skeleton uses the '
                                 'idle CPU; false = the nice value only', _ANY),
     'lossless': ('never skip a cloud: when registration falls behind, segmentation waits for it and '
                  'so does the input (bag replay with input_reliability reliable; replay sets it)', _ANY),

@@ -98,7 +98,8 @@ class _Child:
 class RegistrationProcess:
     """A NonRigidRegistration run in one child process.
 
-    niceness: what `lower_priority` adds to the child's nice value (0 = none).
+    niceness: what `lower_priority` adds to the child's nice value (0 = the priority is
+    never lowered).
     sched_idle: `lower_priority` also puts the child in Linux's idle scheduling class
     (SCHED_IDLE): it runs when no other task wants the core. A nice value only shares the
     cores in proportion; a live-path thread that wakes while the nicer child runs still
@@ -122,7 +123,7 @@ class RegistrationProcess:
     def lower_priority(self) -> None:
         """Add `niceness` to the child's nice value and, with `sched_idle`, put it in the
         idle scheduling class (once; a new child starts at the node's priority)."""
-        if self.lowered or (self.niceness == 0 and not self.sched_idle):
+        if self.lowered or self.niceness == 0:     # 0: never lowered, nor put in the idle class
             return
         value = min(os.getpriority(os.PRIO_PROCESS, 0) + self.niceness, 19)
         # Linux keeps a nice value and a policy per thread: set them on every thread of the
