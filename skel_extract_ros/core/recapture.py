@@ -38,14 +38,18 @@ class Recapture:
     explained: float
 
 
-def unexplained_clusters(observed: np.ndarray, points: np.ndarray, reach: float, link: float,
+def unexplained_clusters(observed: np.ndarray, points: np.ndarray, reach: float, link_spacings: float,
                          min_points: int) -> list:
     """Observations (N, 3) farther than `reach` from every model point (M, 3), split into
-    connected pieces (neighbours within `link`); pieces of at least `min_points`."""
+    connected pieces (neighbours within `link_spacings` times the observations' median
+    spacing); pieces of at least `min_points`."""
     distance, _ = cKDTree(points).query(observed, distance_upper_bound=reach)
     far = observed[~np.isfinite(distance)]
     if len(far) < min_points:
         return []
+    # the spacing only here: most frames with a lost part have too few far observations,
+    # and it is a k-d tree over the whole frame (4 ms for 5 000 points)
+    link = link_spacings * median_spacing(observed)
     pairs = cKDTree(far).query_pairs(link, output_type='ndarray')
     adjacency = sparse.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(far), len(far)))
     _, labels = connected_components(adjacency, directed=False)
@@ -136,10 +140,9 @@ def find_recaptures(observed: np.ndarray, points: np.ndarray, node_positions: np
     parts = lost_parts(support, edges)
     if not parts:
         return []
-    spacing = median_spacing(observed)
     # a lost part is at least a node's worth of points: smaller pieces are noise
     min_points = max(10, int(len(observed) / max(len(node_positions), 1)))
-    clusters = unexplained_clusters(observed, points, reach, 2.5 * spacing, min_points)
+    clusters = unexplained_clusters(observed, points, reach, 2.5, min_points)
     found = []
     for nodes, anchors in parts:                  # loops over a few parts and clusters
         part_points = points[np.isin(point_nodes, nodes)]
