@@ -21,7 +21,8 @@ from skel_extract_ros.core.sequence import SequenceRegistration
 from skel_extract_ros.core.structure import StructureParams, extract_structure
 from skel_extract_ros.nodes.accumulator_node import AccumulatorNode
 from skel_extract_ros.nodes.common import LATCHED_QOS, STREAM_QOS, ParameterError
-from skel_extract_ros.nodes.conversions import cloud_message, structure_document
+from skel_extract_ros.nodes import joint_estimation_node
+from skel_extract_ros.nodes.conversions import cloud_message, skeleton_markers, structure_document
 from skel_extract_ros.nodes.joint_estimation_node import JointEstimationNode
 from skel_extract_ros.nodes.registration_node import RegistrationNode
 from skel_extract_ros.pointcloud import decode_xyz
@@ -401,6 +402,25 @@ def test_joint_estimation_node_window_then_live(ros):
     live = np.array([[joints[i].poses[child].position.x, joints[i].poses[child].position.y,
                       joints[i].poses[child].position.z] for i in range(12, 24)])
     assert np.linalg.norm(live - joint_path[12:], axis=1).max() < 3e-3
+
+
+def test_joint_estimation_node_builds_markers_only_for_a_reader(ros, monkeypatch):
+    """skeleton/markers costs ~0.9 ms a live frame to build and serialise: not without a reader."""
+    built = []
+    monkeypatch.setattr(joint_estimation_node, 'skeleton_markers',
+                        lambda *args: built.append(args[2]) or skeleton_markers(*args))
+    rest, registered, *_ = two_bone_sequence(n_frames=18)
+    node = ros.add(JointEstimationNode, parameter_overrides=[Parameter('live_frames', value='registered')])
+    joints = ros.listen('skeleton/joints', PoseArray, STREAM_QOS)
+    _learn_frames_0_to_11_with_12_registered_after(ros, node, rest, registered)
+    ros.wait(lambda: len(joints) == 13, what='joints for the window and frame 12')
+    assert built == []
+    markers = ros.listen('skeleton/markers', MarkerArray, STREAM_QOS)
+    ros.wait(lambda: node.markers_pub.get_subscription_count() > 0, what='the markers reader matched')
+    _publish_two_bone(ros, rest, registered[13:], start=13)
+    ros.wait(lambda: len(joints) == 18 and len(markers) == 5, what='markers for the frames after it')
+    assert stamps_of([m.markers[0] for m in markers]) == stamps_of(joints)[13:] == [T0 + i * DT for i in range(13, 18)]
+    assert len(built) == 5                # built for those frames only
 
 
 def _learn_frames_0_to_11_with_12_registered_after(ros, node, rest, registered):

@@ -5,8 +5,8 @@ Subscribes  skeleton/structure (std_msgs/String JSON, transient local)
 Publishes   skeleton/description (std_msgs/String JSON, transient local): joint_names,
             parents, rest_positions, frame_id, window_stamps_ns
             skeleton/joints  (geometry_msgs/PoseArray, one pose per joint, input header)
-            skeleton/markers (visualization_msgs/MarkerArray: SPHERE per joint, id = joint
-            index; LINE_LIST of bones; input header)
+            skeleton/markers (visualization_msgs/MarkerArray, only while a reader is matched:
+            SPHERE per joint, id = joint index; LINE_LIST of bones; input header)
             skeleton/posed_points (PointCloud2, M points in the registered points' order,
             input header): the learned model posed by LBS at each fitted camera frame;
             the registration node starts its next frame from it (`live_start`)
@@ -363,7 +363,10 @@ class JointEstimationNode(WorkingNode):
     def _publish_joints(self, header, positions, parents) -> None:
         self.joints_rate.tick()
         self.joints_pub.publish(pose_array(positions, header))
-        self.markers_pub.publish(skeleton_markers(positions, parents, header, self.joint_diameter))
+        # markers only for a reader (RViz): building and serialising them is ~0.9 ms of every
+        # live frame, and a volatile topic drops what it sends unmatched anyway
+        if self.markers_pub.get_subscription_count() > 0:
+            self.markers_pub.publish(skeleton_markers(positions, parents, header, self.joint_diameter))
 
     def stop_work(self) -> None:
         """Stop Alg. 2's and the live fit's threads (not the ROS entities: destroy_node)."""
