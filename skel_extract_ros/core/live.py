@@ -111,27 +111,30 @@ class _BoneBlocks:
         self._parents = np.asarray(model.parents)
         self._joints = np.asarray(model.rest_joints, dtype=np.float64)
         self._alpha = self.params.zeta * len(rest)
-        # per bone: its weighted points (index, slot, weight, rest position) and its joints
-        # (other bone, c_jk)
+        # every (point, slot) a bone carries, flattened in bone order (bone b's entries are
+        # start[b]:start[b + 1]): what a sweep's point weights fix (each bone's lambda total,
+        # mu_a, weighted rest points) is computed for all bones at once; per bone, views of
+        # its entries (index, slot, weight, rest position) and its joints (other bone, c_jk)
+        point, slot = np.nonzero(self._weights > 1e-8)
+        bone_of_entry = self._influences[point, slot]
+        order = np.argsort(bone_of_entry, kind='stable')      # row-major within each bone
+        point, slot, bone_of_entry = point[order], slot[order], bone_of_entry[order]
+        n_bones = len(self._parents)
+        self._entry_start = np.concatenate([[0], np.cumsum(np.bincount(bone_of_entry, minlength=n_bones))])
+        self._entry_point = point
+        self._entry_weight = self._weights[point, slot]
+        self._entry_rest = rest[point]
+        # (B, E) one-hot, row b sums bone b's entries (B bones x a few entries a model point)
+        self._entry_sum = (bone_of_entry[None, :] == np.arange(n_bones)[:, None]).astype(np.float64)
         self._bones = []
-        for bone in range(len(self._parents)):
-            m, slot = np.nonzero((self._influences == bone) & (self._weights > 1e-8))
+        for bone in range(n_bones):
+            span = slice(self._entry_start[bone], self._entry_start[bone + 1])
             links = [(int(self._parents[bone]), self._joints[bone])] if self._parents[bone] >= 0 else []
             links += [(int(child), self._joints[child]) for child in np.flatnonzero(self._parents == bone)]
             others = np.array([k for k, _ in links], dtype=int)
             centres = np.array([c for _, c in links]).reshape(-1, 3)
-            self._bones.append((m, slot, self._weights[m, slot], rest[m], others, centres))
-        # the same points flattened in bone order (bone b's are entries start[b]:start[b + 1]):
-        # what a sweep's point weights fix (each bone's lambda total, mu_a, weighted rest
-        # points) is computed for all bones at once, not in the per-bone loop
-        sizes = [len(b[0]) for b in self._bones]
-        self._entry_start = np.concatenate([[0], np.cumsum(sizes)]).astype(int)
-        self._entry_point = np.concatenate([b[0] for b in self._bones]).astype(int)
-        self._entry_weight = np.concatenate([b[2] for b in self._bones]).astype(np.float64)
-        self._entry_rest = np.concatenate([b[3] for b in self._bones]).reshape(-1, 3)
-        # (B, E) one-hot, row b sums bone b's entries (B bones x a few entries a model point)
-        bone_of_entry = np.repeat(np.arange(len(sizes)), sizes)
-        self._entry_sum = (bone_of_entry[None, :] == np.arange(len(sizes))[:, None]).astype(np.float64)
+            self._bones.append((point[span], slot[span], self._entry_weight[span], self._entry_rest[span],
+                                others, centres))
         self._link_counts = np.array([len(b[4]) for b in self._bones], dtype=np.float64)
         self._centre_sums = np.array([b[5].sum(axis=0) for b in self._bones]).reshape(-1, 3)
 
