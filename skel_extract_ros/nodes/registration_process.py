@@ -15,7 +15,7 @@ Why not multiprocessing: its spawn start imports the node's main module again in
 (rclpy and the message packages, about 20 MB), adds a resource-tracker process (13 MB) and
 its fork start is unsafe in a process running DDS threads. The child here is `python -m
 skel_extract_ros.nodes.registration_process`: it imports numpy, scipy and the core modules
-only, reads (call, arguments) pickles on stdin and answers (ok, value) pickles on stdout,
+only (and nodes/worker.py, which is the standard library), reads (call, arguments) pickles on stdin and answers (ok, value) pickles on stdout,
 and ends when its stdin closes (the node ended or died). The NonRigidRegistration object
 is built in the node and sent once per rest pose; afterwards only the frame's observed
 points (N, 3) and its FrameResult (~50 kB) cross.
@@ -42,6 +42,7 @@ import numpy as np
 
 from ..core.registration import FrameResult, NonRigidRegistration
 from ..core.rest_pose import RestPose, RestPoseParams
+from .worker import lower_priority
 
 __all__ = ['ChildProcessDied', 'RegistrationProcess', 'RestPoseProcess']
 
@@ -125,17 +126,10 @@ class RegistrationProcess:
         idle scheduling class (once; a new child starts at the node's priority)."""
         if self.lowered or self.niceness == 0:     # 0: never lowered, nor put in the idle class
             return
-        value = min(os.getpriority(os.PRIO_PROCESS, 0) + self.niceness, 19)
-        # Linux keeps a nice value and a policy per thread: set them on every thread of the
-        # child (threads it starts later inherit them); lowering either needs no privilege
+        # on every thread of the child: Linux keeps a nice value and a policy per thread
         try:
             for task in os.listdir(f'/proc/{self.pid}/task'):
-                os.setpriority(os.PRIO_PROCESS, int(task), value)
-                if self.sched_idle:
-                    try:
-                        os.sched_setscheduler(int(task), os.SCHED_IDLE, os.sched_param(0))
-                    except (AttributeError, PermissionError):  # not Linux, or refused: the nice value only
-                        pass
+                lower_priority(int(task), self.niceness, self.sched_idle)
         except (FileNotFoundError, ProcessLookupError):
             return       # the child is gone: the next call says so
         self.lowered = True

@@ -21,6 +21,20 @@ import traceback
 from typing import Callable
 
 
+def lower_priority(task_id: int, niceness: int, idle_class: bool = False) -> None:
+    """Add `niceness` to the nice value of thread or process `task_id` (Linux keeps one per
+    thread; threads it starts later inherit it) and, with `idle_class`, put it in the idle
+    scheduling class (SCHED_IDLE: it runs only when no other task wants the core). Lowering
+    either needs no privilege. Raises OSError (ProcessLookupError: the task is gone) and
+    AttributeError (not Linux) from the nice value; a refused class leaves the nice value."""
+    os.setpriority(os.PRIO_PROCESS, task_id, min(os.getpriority(os.PRIO_PROCESS, task_id) + niceness, 19))
+    if idle_class:
+        try:
+            os.sched_setscheduler(task_id, os.SCHED_IDLE, os.sched_param(0))
+        except (AttributeError, PermissionError):
+            pass
+
+
 class RateMeter:
     """Events per second over the last `window_s` seconds (thread-safe)."""
 
@@ -165,10 +179,8 @@ class Worker:
 
     def _run(self) -> None:
         if self.niceness > 0:
-            thread_id = threading.get_native_id()
             try:
-                os.setpriority(os.PRIO_PROCESS, thread_id,
-                               min(os.getpriority(os.PRIO_PROCESS, thread_id) + self.niceness, 19))
+                lower_priority(threading.get_native_id(), self.niceness)
             except (OSError, AttributeError):   # not Linux, or not allowed: at the process's priority
                 pass
         while True:
