@@ -219,20 +219,26 @@ def _late_registrations(model, registered, joint_path, reach, lag=10):
 
 
 def test_camera_tracker_reaches_a_body_that_walked_since_its_registration(learned):
-    """The two bones walking 2 cm a frame, the registration 10-19 frames (20-38 cm) old:
-    with reach (the whole-body move, the joint weight ramp) the child joint is measured
-    147 mm off on average, without 274 mm (the fit barely leaves the registered pose);
-    bound: reach at most 0.6 x. On this pair of featureless cylinders bending 60 degrees
-    within the lag and not walking, reach is worse (65 against 18 mm: loosened, each
-    cylinder slides along its own axis), unlike on real motion, where it is better or
-    equal on 9 of 10 rows (bench/README.md, "Reach"); that case is not asserted."""
+    """The two bones walking 2 cm a frame across their axis (diagonally in y-z), the
+    registration 10-19 frames (20-38 cm) old: with reach (the whole-body move, the joint
+    weight ramp) the child joint is measured 50 mm off on average, without 286 mm (the fit
+    barely leaves the registered pose); bound: reach at most 0.35 x.
+
+    Not along the axis (x): the bones are featureless cylinders along x, so a slide along
+    it is nearly unobserved and how far a fit follows it depends on rounding (reach 0.54 x
+    on the machines this test was written on, 0.61 x on an AMD EPYC with the same wheels;
+    across the axis 0.175 x on both BLAS kernels tried there). Nor bending 60 degrees within
+    the lag without walking, where reach is worse on these cylinders (65 against 18 mm:
+    loosened, each slides along its own axis), unlike on real motion, where it is better or
+    equal on 9 of 10 rows (bench/README.md, "Reach"); those cases are not asserted."""
     model, registered, joint_path, _ = learned
+    direction = np.array([0.0, 1.0, 1.0]) / np.sqrt(2.0)
     walked = 0.02 * np.arange(len(registered))
-    walking = registered + walked[:, None, None] * np.array([1.0, 0.0, 0.0])
-    path = joint_path + walked[:, None] * np.array([1.0, 0.0, 0.0])
+    walking = registered + walked[:, None, None] * direction
+    path = joint_path + walked[:, None] * direction
     with_reach = _late_registrations(model, walking, path, reach=True)
     without = _late_registrations(model, walking, path, reach=False)
-    assert with_reach.mean() < 0.6 * without.mean(), (with_reach.mean(), without.mean())
+    assert with_reach.mean() < 0.35 * without.mean(), (with_reach.mean(), without.mean())
 
 
 def test_camera_tracker_gives_the_registered_pose_when_the_fit_diverges(learned):
