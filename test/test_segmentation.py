@@ -236,3 +236,7 @@ def test_the_fast_opening_is_scipy_s_binary_opening_up_to_the_image_border():
         mask[:, :3] = True                      # blobs touching the border
         expected = ndimage.binary_opening(mask, structure=np.ones((3, 3), bool))
         np.testing.assert_array_equal(_opening3x3(mask), expected)
+    for shape in ((1, 10), (2, 5), (3, 3), (4, 1)):     # images thinner than the structure
+        for mask in (np.ones(shape, bool), rng.uniform(size=shape) < 0.8):
+            expected = ndimage.binary_opening(mask, structure=np.ones((3, 3), bool))
+            np.testing.assert_array_equal(_opening3x3(mask), expected)

