@@ -447,9 +447,9 @@ class SubjectSegmenter:
 
         # Each pass tests the regions not yet joined against those the pass before it joined
         # only: against the earlier ones each was tested already and was out of reach, so
-        # the result is that of testing against all of them, with a small tree and a tight
-        # box that rules most regions out without a query (5 -> 2 ms a frame on a cow in a
-        # room, the same masks).
+        # the result is that of testing against all of them, with a smaller tree and a
+        # tighter box that rules more regions out without a query (the same masks; 4 909 ->
+        # 4 434 queries over 90 frames of a cow in a room).
         newly_joined = [region_points(primary)]
         for _ in range(3):
             tree = cKDTree(np.concatenate([pts[:: max(1, len(pts) // 1500)] for pts in newly_joined]))
