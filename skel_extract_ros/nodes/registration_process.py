@@ -15,8 +15,9 @@ Why not multiprocessing: its spawn start imports the node's main module again in
 (rclpy and the message packages, about 20 MB), adds a resource-tracker process (13 MB) and
 its fork start is unsafe in a process running DDS threads. The child here is `python -m
 skel_extract_ros.nodes.registration_process`: it imports numpy, scipy and the core modules
-only (and nodes/worker.py, which is the standard library), reads (call, arguments) pickles on stdin and answers (ok, value) pickles on stdout,
-and ends when its stdin closes (the node ended or died). The NonRigidRegistration object
+only (and nodes/worker.py, which imports only the standard library), reads (call,
+arguments) pickles on stdin and answers (ok, value) pickles on stdout, and ends when its
+stdin closes (the node ended or died). The NonRigidRegistration object
 is built in the node and sent once per rest pose; afterwards only the frame's observed
 points (N, 3) and its FrameResult (~50 kB) cross.
 
