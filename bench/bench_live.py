@@ -119,7 +119,7 @@ def live_row(bag: Path, iterations: int, sweeps: int, lag: int, scheme: str) -> 
 
     def report(positions):
         skeleton = PredictedSkeleton(model.joint_names, list(model.parents), stamp_array, positions)
-        return evaluate_joints(skeleton, gt)
+        return evaluate_joints(skeleton, gt, start_stamp=float(stamp_array[0]), end_stamp=float(stamp_array[-1]))
 
     offline_report, live_report = report(offline), report(live)
     return {'joints': model.n_joints, 'frames': len(scored), 'points': int(np.median([len(o) for o in observed])),

@@ -12,7 +12,13 @@ whole clip when shorter), in an empty scene and in a room (floor, walls, a table
 Walks keep their travel (towards the camera, which stays within 4.5 m); runs are put on a
 treadmill (`simulate --treadmill`), since 5 m in two seconds leaves any depth camera's view.
 `skel-extract run` is started as a user starts it (a subprocess, default parameters) and
-its files are scored with skel_extract_ros.evaluation. Absent data is skipped.
+its files are scored with skel_extract_ros.evaluation (the joints over the registration's
+frames: every frame without joints is a miss). Absent data is skipped.
+
+Printed: one row per subject and scene; the median of the headline figures on the tuning
+half (TUNING: choices are made there) and on the check half; each anatomical joint over
+the rows where it bends or travels (found, and its error split into the offset along the
+camera ray, across it, and what is left once the offset is removed).
 
 `--work DIR` keeps the bags and run outputs (default: a temporary directory); with
 `--score-only` nothing is simulated or run again, the outputs in DIR are scored.
@@ -37,13 +43,23 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from skel_extract_ros.evaluation import (EvaluationError, GroundTruth, PredictedSkeleton,  # noqa: E402
-                                         evaluate_joints, evaluate_registration, load_registered)
+from skel_extract_ros.evaluation import EvaluationError, GroundTruth, evaluate_outputs  # noqa: E402
 
 DATA = Path(os.environ.get('SKEL_SHARED_DATA', REPO.parent / 'shared' / 'data'))
 CLI = shutil.which('skel-extract', path=str(Path(sys.executable).parent)) or 'skel-extract'
 TIME_LINE = re.compile(r'time: segmentation ([\d.]+) s \| preprocess ([\d.]+) s \| rest pose ([\d.]+) s \| registration ([\d.]+) s '
                        r'\(median (\d+) ms/frame\) \| structure ([\d.]+) s \| joints ([\d.]+) s \| total ([\d.]+) s')
+
+
+# Choices (defaults, thresholds) are made on the tuning half and reported on both: one clip
+# of each pair of styles, the turning walk, on one side; the cow (another body) and the
+# samba (another capture) on the check side.
+TUNING = ('raise-up-both-hands_normal', 'run_active', 'walk_active', 'walk-turn-left_normal',
+          'wave-both-hands_active', 'wave-left-hand_normal')
+
+
+def half(name: str) -> str:
+    return 'tuning' if name in TUNING else 'check'
 
 
 def subjects(only: list) -> list:
@@ -107,6 +123,12 @@ def segmentation_scores(bag: Path, gt_path: Path) -> dict:
             'seg_ms_median': 1000 * float(np.median(times)), 'seg_ms_p95': 1000 * float(np.percentile(times, 95))}
 
 
+JOINT_KEYS = ('n_predicted', 'n_matched', 'recall', 'articulated_recall', 'articulated_recall_10cm',
+              'articulated_recall_5cm', 'n_articulated', 'moving_recall', 'n_moving', 'tracking_skill',
+              'frame_coverage', 'precision', 'mean_error_m', 'normalized_error_m', 'motion_skill',
+              'nonfinite_fraction')
+
+
 def _num(value) -> float:
     return float(value) if value is not None else float('nan')
 
@@ -115,31 +137,32 @@ def score(name: str, scene: str, work: Path) -> dict:
     bag, out = work / f'{name}_{scene}', work / f'{name}_{scene}_out'
     record = json.loads((work / f'{name}_{scene}_run.json').read_text())
     gt = GroundTruth.load(bag / 'gt.npz')
-    row = {'subject': name, 'scene': scene, 'error': record['error'], 'wall_s': record['wall_s'],
-           'true_joints': int(gt.joints.shape[1])}
+    row = {'subject': name, 'scene': scene, 'half': half(name), 'error': record['error'],
+           'wall_s': record['wall_s'], 'true_joints': int(gt.joints.shape[1])}
     row.update(segmentation_scores(bag, bag / 'gt.npz'))
     timing = TIME_LINE.search(record['stdout'])
     if timing:
         keys = ('segmentation_s', 'preprocess_s', 'rest_pose_s', 'registration_s', 'registration_ms_per_frame',
                 'structure_s', 'joints_s', 'total_s')
         row.update({k: float(v) for k, v in zip(keys, timing.groups())})
-    if (out / 'registered.npz').is_file():
-        points, stamps = load_registered(out / 'registered.npz')
-        reg = evaluate_registration(points, stamps, gt)
-        per_frame = np.asarray(reg['per_frame_error_m'])
+    registered = out / 'registered.npz'
+    skeleton = out / 'skeleton.json' if gt.joints.shape[1] and (out / 'skeleton.json').is_file() else None
+    scores = evaluate_outputs(gt, skeleton, registered if registered.is_file() else None)
+    if 'registration' in scores:
+        reg = scores['registration']
         row.update({'reg_mean_m': reg['mean_error_m'], 'reg_p95_m': reg['p95_error_m'],
-                    'reg_worst_frame_m': float(np.nanmax(per_frame)),
+                    'reg_worst_frame_m': float(np.nanmax(reg['per_frame_error_m'])),
                     'reg_worst_frame_p95_m': _num(reg.get('worst_frame_p95_m')),
                     'per_part': reg.get('per_part', {})})
-    if (out / 'skeleton.json').is_file() and gt.joints.shape[1]:
-        report = evaluate_joints(PredictedSkeleton.load(out / 'skeleton.json'), gt).as_dict()
-        row.update({k: report.get(k) for k in (
-            'n_predicted', 'n_matched', 'recall', 'articulated_recall', 'n_articulated', 'precision',
-            'mean_error_m', 'normalized_error_m', 'motion_skill', 'nonfinite_fraction')})
+    if 'joints' in scores:
+        report = scores['joints']
+        row.update({k: report.get(k) for k in JOINT_KEYS})
         row['missed_articulated'] = report.get('missed_articulated', [])
+        row['per_joint'] = report['per_joint']
     elif gt.joints.shape[1]:
-        # No skeleton is no joint found: recall 0 over the articulated joints.
-        row.update({'n_predicted': 0, 'recall': 0.0, 'articulated_recall': 0.0})
+        # No skeleton is no joint found and no frame answered.
+        row.update({'n_predicted': 0, 'recall': 0.0, 'articulated_recall': 0.0, 'moving_recall': 0.0,
+                    'tracking_skill': 0.0, 'frame_coverage': 0.0})
     return row
 
 
@@ -164,10 +187,11 @@ def segmentation_table(rows: list) -> str:
 
 
 def table(rows: list) -> str:
-    lines = ['| subject | scene | articulated / true joints | found | recall | artic. recall | precision | '
-             'joint mean / normalized (cm) | reg mean / p95 / worst frame (cm) | worst part: mean / worst frame (cm) | '
-             'reg ms/frame | step 2 + 3 (s) | total (s) |',
-             '|' + '---|' * 13]
+    lines = ['| subject | scene | half | bending / moving / true joints | found | artic. recall 15 / 10 / 5 cm | '
+             'precision | moving recall | tracking skill | frame coverage | joint mean / offset removed (cm) | '
+             'reg mean / p95 / worst frame (cm) | worst part: mean / worst frame (cm) | reg ms/frame | '
+             'step 2 + 3 (s) | total (s) |',
+             '|' + '---|' * 16]
     for r in rows:
         parts = r.get('per_part') or {}
         worst = max(parts.items(), key=lambda kv: kv[1].get('mean_error_m', 0.0), default=None)
@@ -176,12 +200,62 @@ def table(rows: list) -> str:
         found = _fmt(r.get('n_predicted')) if not r.get('error') else f'fails: {r["error"][:60]}'
         steps = (r.get('structure_s') or 0.0) + (r.get('joints_s') or 0.0) if 'structure_s' in r else None
         lines.append(
-            f'| {r["subject"]} | {r["scene"]} | {_fmt(r.get("n_articulated"))} / {r["true_joints"]} | {found} | '
-            f'{_fmt(r.get("recall"))} | {_fmt(r.get("articulated_recall"))} | {_fmt(r.get("precision"))} | '
+            f'| {r["subject"]} | {r["scene"]} | {r["half"]} | {_fmt(r.get("n_articulated"))} / '
+            f'{_fmt(r.get("n_moving"))} / {r["true_joints"]} | {found} | {_fmt(r.get("articulated_recall"))} / '
+            f'{_fmt(r.get("articulated_recall_10cm"))} / {_fmt(r.get("articulated_recall_5cm"))} | '
+            f'{_fmt(r.get("precision"))} | {_fmt(r.get("moving_recall"))} | {_fmt(r.get("tracking_skill"))} | '
+            f'{_fmt(r.get("frame_coverage"))} | '
             f'{_fmt(r.get("mean_error_m"), 1, 100)} / {_fmt(r.get("normalized_error_m"), 1, 100)} | '
             f'{_fmt(r.get("reg_mean_m"), 1, 100)} / {_fmt(r.get("reg_p95_m"), 1, 100)} / '
             f'{_fmt(r.get("reg_worst_frame_m"), 1, 100)} | {worst_text} | '
             f'{_fmt(r.get("registration_ms_per_frame"), 0)} | {_fmt(steps, 1)} | {_fmt(r.get("total_s"), 1)} |')
+    return '\n'.join(lines)
+
+
+SUMMARY_KEYS = (('articulated_recall', 'artic. recall', 1.0), ('articulated_recall_5cm', 'within 5 cm', 1.0),
+                ('precision', 'precision', 1.0), ('mean_error_m', 'joint mean (cm)', 100.0),
+                ('normalized_error_m', 'offset removed (cm)', 100.0), ('moving_recall', 'moving recall', 1.0),
+                ('tracking_skill', 'tracking skill', 1.0), ('frame_coverage', 'frame coverage', 1.0),
+                ('reg_mean_m', 'reg mean (cm)', 100.0))
+
+
+def summary_table(rows: list) -> str:
+    """The median of each headline figure over the rows with joints, per half."""
+    scored = [r for r in rows if r['true_joints']]
+    lines = ['| half | rows | ' + ' | '.join(label for _, label, _ in SUMMARY_KEYS) + ' |',
+             '|' + '---|' * (2 + len(SUMMARY_KEYS))]
+    for name in ('tuning', 'check'):
+        chosen = [r for r in scored if r['half'] == name]
+        medians = [float(np.nanmedian([_num(r.get(key)) for r in chosen])) if chosen else float('nan')
+                   for key, _, _ in SUMMARY_KEYS]
+        lines.append(f'| {name} | {len(chosen)} | ' + ' | '.join(
+            _fmt(value, 1 if scale == 100.0 else 2, scale) for value, (_, _, scale) in zip(medians, SUMMARY_KEYS)) + ' |')
+    return '\n'.join(lines)
+
+
+def per_joint_table(rows: list) -> str:
+    """Each anatomical joint over the rows where it bends or travels: how often it is
+    found (at 15, 10, 5 cm), and where its error lies: the mean offset along the camera ray
+    (+ = behind the true joint) and across it, and the error left once the offset is
+    removed."""
+    joints = {}
+    for r in rows:
+        for entry in r.get('per_joint') or []:
+            if entry['articulated'] or entry['moving']:
+                joints.setdefault((r['subject'] == 'cow', entry['ground_truth']), []).append(entry)
+    lines = ['| joint | rows it bends or moves in | found | within 10 / 5 cm | tracked (moving) | '
+             'error (cm) | along the ray (cm) | across (cm) | offset removed (cm) |', '|' + '---|' * 9]
+    for (_, name), entries in sorted(joints.items()):
+        found = [e for e in entries if e['found']]
+        moving = [e for e in entries if e['moving']]
+
+        def mean(key, chosen=found):
+            return float(np.mean([e[key] for e in chosen])) if chosen else float('nan')
+        lines.append(
+            f'| {name} | {len(entries)} | {len(found)} | {sum(e["found_10cm"] for e in entries)} / '
+            f'{sum(e["found_5cm"] for e in entries)} | {sum(e["tracks"] for e in moving)} of {len(moving)} | '
+            f'{_fmt(mean("error_m"), 1, 100)} | {_fmt(mean("offset_along_ray_m"), 1, 100)} | '
+            f'{_fmt(mean("offset_across_ray_m"), 1, 100)} | {_fmt(mean("normalized_error_m"), 1, 100)} |')
     return '\n'.join(lines)
 
 
@@ -213,6 +287,10 @@ def main() -> int:
             except (EvaluationError, FileNotFoundError) as error:
                 print(f'{name} {scene}: cannot score: {error}', file=sys.stderr)
     print(table(rows))
+    print()
+    print(summary_table(rows))
+    print()
+    print(per_joint_table(rows))
     print()
     print(segmentation_table(rows))
     if args.json:

@@ -74,7 +74,7 @@ def dem_bones_joints(rest, registered, structure, eta: float):
 
 def score(positions, parents, stamps, gt):
     pred = PredictedSkeleton([f'joint_{i}' for i in range(positions.shape[1])], list(parents), stamps, positions)
-    return evaluate_joints(pred, gt)
+    return evaluate_joints(pred, gt, start_stamp=float(stamps[0]), end_stamp=float(stamps[-1]))
 
 
 def main() -> int:

@@ -86,7 +86,12 @@ def score(bag: Path, out: Path, from_pass: int = 3, bounce: bool = False) -> dic
     result = {}
     for name, chosen in (('all', np.ones(len(pred.stamps), bool)), ('later', later)):
         part = dataclasses.replace(pred, stamps=pred.stamps[chosen], positions=pred.positions[chosen])
-        result[name] = (len(part.stamps), evaluate_joints(part, gt)) if chosen.any() else None
+        # scored from the first live joints (or the pass) to the last: a camera frame without
+        # joints in between is a miss
+        start = gt.stamps[0] + from_pass * pass_s if name == 'later' else float(part.stamps.min(initial=np.inf))
+        result[name] = ((len(part.stamps), evaluate_joints(part, gt, start_stamp=start,
+                                                           end_stamp=float(pred.stamps.max())))
+                        if chosen.any() else None)
     _, gt_index = match_frames(pred.stamps, gt.stamps)
     nearest = np.linalg.norm(pred.positions[:, :, None, :] - gt.joints[gt_index][:, None, :, :], axis=-1).min(axis=2)
     result['nearest_cm'] = (100 * float(np.median(nearest)), 100 * float(np.percentile(nearest, 95)))

@@ -78,40 +78,58 @@ def _cmd_simulate(args) -> int:
 
 
 def _cmd_evaluate(args) -> int:
-    from .evaluation import (EvaluationError, GroundTruth, PredictedSkeleton, evaluate_joints,
-                             evaluate_registration, load_registered)
+    from .evaluation import EvaluationError, GroundTruth, evaluate_outputs
+    if not args.pred and not args.registered:
+        raise UserError('nothing to evaluate: give --pred and/or --registered')
     try:
-        gt = GroundTruth.load(args.gt)
-        result = {}
-        if args.pred:
-            result['joints'] = evaluate_joints(PredictedSkeleton.load(args.pred), gt,
-                                               args.threshold).as_dict()
-        if args.registered:
-            points, stamps = load_registered(args.registered)
-            result['registration'] = evaluate_registration(points, stamps, gt)
+        result = evaluate_outputs(GroundTruth.load(args.gt), args.pred, args.registered, args.threshold)
     except EvaluationError as error:
         raise UserError(str(error)) from None
-    if not result:
-        raise UserError('nothing to evaluate: give --pred and/or --registered')
     if args.json:
         print(json.dumps(result, indent=2))
-        return 0
+    else:
+        _print_scores(result, per_joint=True)
+    return 0
+
+
+def _cm(value) -> str:
+    return '-' if value is None or not np.isfinite(value) else f'{100 * value:.1f}'
+
+
+def _ratio(value) -> str:
+    return '-' if value is None or not np.isfinite(value) else f'{value:.2f}'
+
+
+def _print_scores(result: dict, per_joint: bool) -> None:
+    """The scores of `evaluation.evaluate_outputs`, the headline figures first."""
     if 'joints' in result:
         j = result['joints']
-        articulated = (f'{j["articulated_recall"]:.2f} of {j["n_articulated"]} that bend >= 25 deg'
-                       if j['n_articulated'] else 'n/a (no joint bends 25 deg)')
-        print(f'joints: mean_error_m {j["mean_error_m"]:.4f}  normalized_error_m '
-              f'{j["normalized_error_m"]:.4f}  recall {j["recall"]:.2f} '
-              f'({j["n_matched"]}/{j["n_ground_truth"]} matched, {j["n_predicted"]} predicted, '
-              f'{j["n_frames"]} frames, threshold {j["threshold_m"]:.3f} m)')
-        print(f'        precision {j["precision"]:.2f}  articulated recall {articulated}  '
-              f'motion skill {j["motion_skill"]:.2f}  non-finite {100 * j["nonfinite_fraction"]:.1f} %')
+        print(f'joints: {j["n_predicted"]} predicted, {j["n_matched"]} of {j["n_ground_truth"]} true matched '
+              f'(recall {j["recall"]:.2f}, precision {j["precision"]:.2f}, threshold {_cm(j["threshold_m"])} cm); '
+              f'frames {j["n_frames"]} scored from frame {j["n_frames_before_start"]}, coverage '
+              f'{100 * j["frame_coverage"]:.0f} %' + (f', {j["n_repeated_frames"]} repeated stamps'
+                                                      if j['n_repeated_frames'] else ''))
+        print(f'  bending joints ({j["n_articulated"]}, >= 25 deg): recall {_ratio(j["articulated_recall"])} '
+              f'(within 10 cm {_ratio(j["articulated_recall_10cm"])}, 5 cm {_ratio(j["articulated_recall_5cm"])}); '
+              f'moving joints ({j["n_moving"]}, >= 10 cm): recall {_ratio(j["moving_recall"])}, '
+              f'tracking skill {_ratio(j["tracking_skill"])} (0 = holding each still)')
+        print(f'  error {_cm(j["mean_error_m"])} cm, offset removed {_cm(j["normalized_error_m"])} cm; '
+              f'motion skill {_ratio(j["motion_skill"])}; non-finite {100 * j["nonfinite_fraction"]:.1f} %')
         if j['missed_articulated']:
-            print(f'        articulated joints not found: {", ".join(j["missed_articulated"])}')
-        for row in j['per_joint']:
-            bends = ' (bends)' if row.get('articulated') else ''
-            print(f'  {row["ground_truth"]:>14s} <- {row["predicted"]:<10s} '
-                  f'{row["error_m"]:.4f} m (normalized {row["normalized_error_m"]:.4f} m){bends}')
+            print(f'  bending joints not found: {", ".join(j["missed_articulated"])}')
+        if j['missed_moving']:
+            print(f'  moving joints not tracked: {", ".join(j["missed_moving"])}')
+        if per_joint:
+            print('  true joint      <- predicted   error / offset removed / along ray / across (cm)')
+            for row in j['per_joint']:
+                kind = ' bends' if row['articulated'] else ''
+                kind += f' moves {_cm(row["travel_m"])} cm' if row['moving'] else ''
+                if not row['found']:
+                    print(f'  {row["ground_truth"]:>14s} <- not found{kind}')
+                    continue
+                print(f'  {row["ground_truth"]:>14s} <- {row["predicted"]:<10s} {_cm(row["error_m"])} / '
+                      f'{_cm(row["normalized_error_m"])} / {_cm(row["offset_along_ray_m"])} / '
+                      f'{_cm(row["offset_across_ray_m"])}{kind}')
     if 'registration' in result:
         r = result['registration']
         drift = '  '.join(f'@{k} {v:.4f}' for k, v in r['drift_m'].items())
@@ -124,7 +142,6 @@ def _cmd_evaluate(args) -> int:
         if parts:
             print('  worst parts: ' + ', '.join(f'{name} {v["mean_error_m"]:.3f} (worst frame '
                                                 f'{v["worst_frame_error_m"]:.3f})' for name, v in parts[:4]))
-    return 0
 
 
 def _parse_frame_range(text: str | None):
@@ -244,7 +261,24 @@ def _cmd_run(args) -> int:
           f'preprocess {seconds["preprocess"]:.1f} s | rest pose {seconds["rest_pose"]:.1f} s | '
           f'registration {seconds["registration"]:.1f} s (median {np.median(per_frame):.0f} ms/frame) | '
           f'structure {seconds["structure"]:.1f} s | joints {seconds["joints"]:.1f} s | total {total:.1f} s')
+    _score_if_simulated(Path(args.input), out)
     return 0
+
+
+def _score_if_simulated(bag: Path, out: Path) -> None:
+    """A bag made by `simulate` carries its ground truth (gt.npz): say how `out` scores."""
+    from .evaluation import EvaluationError, GroundTruth, evaluate_outputs
+    if not (bag / 'gt.npz').is_file():
+        return
+    try:
+        gt = GroundTruth.load(bag / 'gt.npz')
+        result = evaluate_outputs(gt, out / 'skeleton.json' if gt.joints.shape[1] else None,
+                                  out / 'registered.npz')
+    except EvaluationError as error:
+        print(f'cannot score against {bag / "gt.npz"}: {error}', file=sys.stderr)
+        return
+    print(f'against the ground truth beside the bag ({bag / "gt.npz"}):')
+    _print_scores(result, per_joint=False)
 
 
 def _cmd_replay(args) -> int:
@@ -294,6 +328,7 @@ def _cmd_replay(args) -> int:
             values = summary[name]
             print(f'latency {name[:-3]}: median {values["median"]:.0f} ms, worst {values["worst"]:.0f} ms '
                   f'({values["n"]} frames)')
+    _score_if_simulated(Path(args.input), out)
     failed = {name: code for name, code in summary['exit_codes'].items() if code != 0}
     if failed:
         raise UserError(f'node(s) did not shut down cleanly: {failed} (see {out / "logs"}; a node killed '

@@ -60,6 +60,8 @@ def test_run_on_the_sample_bag_end_to_end(sample_run, sample_bag):
     done, out = sample_run
     assert done.returncode == 0, done.stderr
     assert 'ms/frame' in done.stdout and 'joints' in done.stdout
+    # the bag carries its ground truth: run scores itself
+    assert 'against the ground truth' in done.stdout and 'tracking skill' in done.stdout
     assert 'subject found in 59 of 60 frames' in done.stdout and 'removed as background' in done.stdout
     assert 'register' in done.stderr  # progress
     data = np.load(out / 'registered.npz')

@@ -80,13 +80,16 @@ def test_another_sequence_scores_near_zero_recall(tmp_path, gt_pair):
 
 def test_frames_are_matched_by_stamp(tmp_path, gt_pair):
     gt = gt_pair[0]
-    # predicted only every other frame, stamps slightly off (driver jitter)
-    report = evaluate(tmp_path, gt, gt.joints[::2], gt.stamps[::2] + 0.002)
-    assert report.n_frames == 15 and report.mean_error_m < 1e-6
+    report = evaluate(tmp_path, gt, gt.joints, gt.stamps + 0.002)      # driver jitter
+    assert report.n_frames == 30 and report.mean_error_m < 1e-6 and report.frame_coverage == 1.0
     with pytest.raises(EvaluationError, match='same stamp'):
         evaluate(tmp_path, gt, gt.joints, gt.stamps + 100.0)
     pred_idx, gt_idx = match_frames(np.array([0.0, 0.5, 1.0]), np.array([1.0, 0.0]), 0.1)
     assert list(pred_idx) == [0, 2] and list(gt_idx) == [1, 0]
+    # scoring starts at the registration's start: the frames before it are not misses
+    pred = PredictedSkeleton.load(skeleton_json(tmp_path / 'late.json', gt.stamps[5:], gt.joints[5:]))
+    late = evaluate_joints(pred, gt, start_stamp=float(gt.stamps[5]))
+    assert late.n_frames == 25 and late.n_frames_before_start == 5 and late.recall == 1.0
 
 
 def test_registration_metric(gt_pair):
@@ -165,8 +168,8 @@ def test_nan_predictions_count_as_misses(tmp_path, gt_pair):
     tenth = gt.joints.copy()
     tenth[::10] = np.nan
     report = evaluate(tmp_path, gt, tenth)
-    assert report.recall == 1.0 and report.nonfinite_fraction == pytest.approx(0.1)
-    assert report.mean_error_m > 0.01         # each missing frame costs
+    assert report.nonfinite_fraction == pytest.approx(0.1) and report.frame_coverage == pytest.approx(0.9)
+    assert report.recall == 0.0, 'a joint missing in a tenth of the frames costs a tenth of the body'
     # the registration: NaN after its first frame is not a perfect score
     chosen = np.random.default_rng(1).choice(gt.surface_points.shape[1], 1500, replace=False)
     registered = gt.surface_points[:, chosen].copy()
@@ -226,3 +229,88 @@ def test_ground_truth_without_joints_scores_registration_only(tmp_path, gt_pair)
         evaluate(tmp_path, meshless, gt.joints)
     chosen = np.arange(0, gt.surface_points.shape[1], 3)
     assert evaluate_registration(gt.surface_points[:, chosen], gt.stamps, meshless)['mean_error_m'] < 1e-6
+
+
+# -- the games of the joints issue: each gamed prediction fails ---------------------------
+def test_leaving_frames_out_costs_more_than_a_wrong_answer(tmp_path, gt_pair):
+    gt = gt_pair[0]
+    every_other = evaluate(tmp_path, gt, gt.joints[::2], gt.stamps[::2])
+    assert every_other.frame_coverage == pytest.approx(0.5) and every_other.recall == 0.0
+    one = evaluate(tmp_path, gt, gt.joints[-1:], gt.stamps[-1:])
+    assert one.recall == 0.0 and one.frame_coverage == pytest.approx(1 / 30)
+    assert not one.tracking_skill > 0.0 and one.moving_recall == 0.0
+    # frame 0 repeated 30 times under its stamp answers frame 0 only
+    repeated = evaluate(tmp_path, gt, np.repeat(gt.joints[:1], 30, axis=0), np.repeat(gt.stamps[:1], 30))
+    assert repeated.n_repeated_frames == 29 and repeated.frame_coverage == pytest.approx(1 / 30)
+    assert repeated.recall == 0.0
+
+
+def test_blanking_the_bad_frames_never_pays(tmp_path, gt_pair):
+    gt = gt_pair[0]
+    rng = np.random.default_rng(3)
+    predicted = gt.joints + rng.normal(scale=0.03, size=gt.joints.shape)
+    bad = np.zeros(len(gt.stamps), dtype=bool)
+    bad[rng.choice(len(bad), 9, replace=False)] = True
+    predicted[bad] += np.array([0.45, 0.0, 0.0])       # 30 % of the frames 45 cm off
+    answered = evaluate(tmp_path, gt, predicted)
+    blanked = predicted.copy()
+    blanked[bad] = np.nan
+    left_out = evaluate(tmp_path, gt, predicted[~bad], gt.stamps[~bad])
+    blanked = evaluate(tmp_path, gt, blanked)
+    # with a miss costing two thresholds the blanked frames made every joint match
+    assert answered.recall == 0.0 and blanked.recall == 0.0 and left_out.recall == 0.0
+    fixed = predicted.copy()
+    fixed[bad] -= np.array([0.45, 0.0, 0.0])
+    assert evaluate(tmp_path, gt, fixed).recall == 1.0
+
+
+def test_a_static_skeleton_does_not_track(tmp_path, gt_pair):
+    gt = gt_pair[0]
+    truth = evaluate(tmp_path, gt, gt.joints)
+    assert truth.tracking_skill == pytest.approx(1.0) and truth.moving_recall == 1.0
+    assert truth.n_moving >= 6 and truth.frame_coverage == 1.0
+    at_mean = np.repeat(gt.joints.mean(axis=0, keepdims=True), len(gt.stamps), axis=0)
+    static = evaluate(tmp_path, gt, at_mean)
+    assert static.recall >= 0.8, 'placement alone: the static skeleton is near every joint'
+    assert static.tracking_skill <= 0.0 and static.moving_recall == 0.0
+    assert set(static.missed_moving) == {row['ground_truth'] for row in static.per_joint if row['moving']}
+    # a skeleton 5 cm off that follows the motion tracks; frozen at its own mean it keeps
+    # its articulated recall but not its tracking
+    offset = gt.joints + np.array([0.0, 0.05, 0.0])
+    moving = evaluate(tmp_path, gt, offset)
+    frozen = evaluate(tmp_path, gt, np.repeat(offset.mean(axis=0, keepdims=True), len(gt.stamps), axis=0))
+    assert moving.tracking_skill > 0.5 and moving.moving_recall == 1.0
+    assert frozen.articulated_recall >= 0.5 * moving.articulated_recall
+    assert frozen.tracking_skill < 0.0 and frozen.moving_recall == 0.0
+
+
+def test_two_joints_mid_bone_match_at_15_cm_but_not_at_5(tmp_path, gt_pair):
+    gt = gt_pair[0]
+    elbow, wrist = gt.joint_names.index('l_elbow'), gt.joint_names.index('l_wrist')
+    assert 0.15 < np.linalg.norm(gt.joints[0, elbow] - gt.joints[0, wrist]) < 0.30
+    mid_bone = gt.joints.copy()
+    mid_bone[:, [elbow, wrist]] = 0.5 * (gt.joints[:, [elbow]] + gt.joints[:, [wrist]])
+    report = evaluate(tmp_path, gt, mid_bone)
+    rows = {row['ground_truth']: row for row in report.per_joint}
+    assert rows['l_elbow']['found'] and rows['l_wrist']['found']
+    assert not rows['l_elbow']['found_5cm'] and not rows['l_wrist']['found_5cm']
+    assert report.articulated_recall_5cm < report.articulated_recall == 1.0
+    assert evaluate(tmp_path, gt, gt.joints).articulated_recall_5cm == 1.0
+
+
+def test_per_joint_offsets_are_split_along_and_across_the_camera_ray(tmp_path, gt_pair):
+    gt = gt_pair[0]
+    rays = gt.joints.mean(axis=0)
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    deeper = evaluate(tmp_path, gt, gt.joints + 0.04 * rays)
+    sideways = np.cross(rays, np.array([0.0, 1.0, 0.0]))
+    sideways /= np.linalg.norm(sideways, axis=1, keepdims=True)
+    across = evaluate(tmp_path, gt, gt.joints + 0.03 * sideways)
+    for row in deeper.per_joint:
+        assert row['offset_along_ray_m'] == pytest.approx(0.04, abs=1e-6)
+        assert row['offset_across_ray_m'] < 1e-6 and row['normalized_error_m'] < 1e-6
+    for row in across.per_joint:
+        assert abs(row['offset_along_ray_m']) < 1e-6
+        assert row['offset_across_ray_m'] == pytest.approx(0.03, abs=1e-6)
+    unmatched = evaluate(tmp_path, gt, gt.joints[:, :3])
+    assert sum(row['found'] for row in unmatched.per_joint) == 3 and len(unmatched.per_joint) == 15

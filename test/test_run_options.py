@@ -65,7 +65,8 @@ def test_run_on_a_recording_where_the_limbs_take_turns_finds_every_joint(tmp_pat
     assert done.returncode == 0, done.stderr
     skeleton = json.loads((tmp_path / 'out' / 'skeleton.json').read_text())
     assert len(skeleton['frames']) == 118           # every registered frame has joints, not just key frames
-    done = run_cli('evaluate', '--pred', tmp_path / 'out' / 'skeleton.json', '--gt', bag / 'gt.npz', '--json')
+    done = run_cli('evaluate', '--pred', tmp_path / 'out' / 'skeleton.json', '--gt', bag / 'gt.npz',
+                   '--registered', tmp_path / 'out' / 'registered.npz', '--json')
     joints = json.loads(done.stdout)['joints']
     assert joints['n_articulated'] == 9 and joints['articulated_recall'] >= 8 / 9, joints
     assert joints['recall'] >= 0.85 and joints['precision'] >= 0.6 and joints['mean_error_m'] < 0.09, joints

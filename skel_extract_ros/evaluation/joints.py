@@ -1,0 +1,237 @@
+"""Joint scores against the true joints (see the package docstring for what each number
+cannot be fooled by)."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from .data import EvaluationError, GroundTruth, PredictedSkeleton, match_frames
+
+DEFAULT_MATCH_THRESHOLD_M = 0.15
+# A joint that bends less than this within the scored frames cannot be told from its
+# parent by motion; 25 degrees moves a 30 cm limb's end by 13 cm.
+ARTICULATION_MIN_DEG = 25.0
+# A frame with no finite answer for a joint costs the subject's size, and never less than
+# this many thresholds (a small subject's size can be close to them).
+MISS_PENALTY_FACTOR = 2.0
+# A true joint whose trajectory reaches this far from its median travels: it is what a
+# downstream consumer follows, and holding it still is visibly wrong (scaled like the
+# threshold for subjects smaller than a person).
+MOVING_MIN_M = 0.10
+# Stricter match radii reported beside the threshold (m, scaled like it): 15 cm is longer
+# than a forearm, so two joints placed mid-bone can both match at 15 cm.
+RECALL_RADII_M = (0.05, 0.10)
+# Subjects smaller than this (bounding-box diagonal, m) get a proportionally smaller
+# threshold: 15 cm is a fair "same joint" radius for a person, not for a finger.
+REFERENCE_SUBJECT_SIZE_M = 1.5
+
+
+def match_threshold(subject_scale_m: float, base_m: float = DEFAULT_MATCH_THRESHOLD_M) -> float:
+    """`base_m` scaled down for subjects smaller than REFERENCE_SUBJECT_SIZE_M (m)."""
+    return base_m * min(1.0, subject_scale_m / REFERENCE_SUBJECT_SIZE_M)
+
+
+@dataclass
+class JointReport:
+    """Joint scores (metres); see `evaluate_joints`."""
+
+    mean_error_m: float
+    normalized_error_m: float
+    recall: float
+    n_predicted: int
+    n_ground_truth: int
+    n_matched: int
+    n_frames: int
+    threshold_m: float
+    precision: float = 0.0
+    articulated_recall: float = float('nan')
+    articulated_recall_5cm: float = float('nan')
+    articulated_recall_10cm: float = float('nan')
+    n_articulated: int = 0
+    moving_recall: float = float('nan')
+    n_moving: int = 0
+    tracking_skill: float = float('nan')
+    frame_coverage: float = 0.0
+    n_frames_before_start: int = 0
+    n_repeated_frames: int = 0
+    motion_skill: float = float('nan')
+    nonfinite_fraction: float = 0.0
+    missed_articulated: list = field(default_factory=list)
+    missed_moving: list = field(default_factory=list)
+    per_joint: list = field(default_factory=list)
+
+    def as_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+def articulation_spans(gt: GroundTruth, gt_idx: np.ndarray) -> np.ndarray:
+    """(G,) degrees: for each true joint, the largest angle between two of its bone's
+    rotations relative to the parent bone over the frames `gt_idx` (0 for root joints,
+    NaN for every joint when the ground truth has no bone transforms)."""
+    n_joints = gt.joints.shape[1]
+    if gt.bone_transforms is None or gt.joint_bones is None or gt.bone_parents is None:
+        return np.full(n_joints, np.nan)
+    rotations = gt.bone_transforms[gt_idx][..., :3, :3].astype(np.float64)     # (F, B, 3, 3)
+    spans = np.zeros(n_joints)
+    for g, bone in enumerate(np.asarray(gt.joint_bones, dtype=int)):   # loop over joints, not points
+        parent = int(gt.bone_parents[bone])
+        if parent < 0:
+            continue
+        relative = np.einsum('fji,fjk->fik', rotations[:, parent], rotations[:, bone])  # (F, 3, 3)
+        # angle between every pair of frames: trace(R_a^T R_b) = 1 + 2 cos(angle); the
+        # largest angle has the smallest trace
+        traces = np.einsum('aji,bji->ab', relative, relative)
+        spans[g] = np.degrees(np.arccos(np.clip((traces.min() - 1.0) / 2.0, -1.0, 1.0)))
+    return spans
+
+
+def geometric_median(trajectories: np.ndarray, iterations: int = 100) -> np.ndarray:
+    """(G, 3): the point of each trajectory (F, G, 3) with the least mean distance to it
+    (Weiszfeld's iteration). No static point is closer on average, so holding a joint
+    there is the best any prediction that does not move can do."""
+    centre = np.median(trajectories, axis=0)
+    for _ in range(iterations):
+        distance = np.maximum(np.linalg.norm(trajectories - centre, axis=-1), 1e-9)   # (F, G)
+        weights = 1.0 / distance
+        centre = np.einsum('fg,fgi->gi', weights, trajectories) / weights.sum(axis=0)[:, None]
+    return centre
+
+
+def scored_window(pred: PredictedSkeleton, gt: GroundTruth, start_stamp: float | None,
+                  end_stamp: float | None = None):
+    """The ground-truth frames scored, (W,) indices from the start to the end, and (W,) the
+    index of the predicted frame for each, -1 where none; the number of predicted frames
+    that repeat a ground-truth frame another one already answers; the number of frames
+    before the start.
+
+    The start is `start_stamp` (the registration's first frame), else the first frame in
+    which the subject is in view (the whole sequence without that record); the end is
+    `end_stamp` (the last frame given to the method, s), else the last frame."""
+    ordered = np.argsort(gt.stamps, kind='stable')
+    sorted_stamps = gt.stamps[ordered]
+    tolerance = 0.25 * (float(np.median(np.diff(sorted_stamps))) if len(gt.stamps) > 1 else 1.0)
+    if start_stamp is None:
+        in_view = gt.subject_in_view
+        start = int(np.argmax(in_view[ordered])) if in_view is not None and in_view.any() else 0
+    else:
+        start = int(np.searchsorted(sorted_stamps, start_stamp - tolerance))
+    end = len(ordered) if end_stamp is None else int(np.searchsorted(sorted_stamps, end_stamp + tolerance))
+    window = ordered[start:end]
+    pred_idx, gt_idx = match_frames(pred.stamps, gt.stamps)
+    slot = np.full(len(gt.stamps), -1)
+    # the first predicted frame answers a ground-truth frame; a copy under the same stamp
+    # answers nothing more
+    first_of_each = np.unique(gt_idx, return_index=True)[1]
+    slot[gt_idx[first_of_each]] = pred_idx[first_of_each]
+    return window, slot[window], len(gt_idx) - len(first_of_each), start
+
+
+def evaluate_joints(pred: PredictedSkeleton, gt: GroundTruth, threshold_m: float | None = None,
+                    start_stamp: float | None = None, end_stamp: float | None = None) -> JointReport:
+    """Joint accuracy of `pred` against `gt` over the W ground-truth frames from the start
+    to the end (see `scored_window`; pass the registration's first and last stamps).
+
+    Every scored frame is answered by the predicted frame with its stamp or it is a miss:
+    a frame with no prediction, a repeated stamp and a non-finite joint cost `miss_cost`
+    (the subject's size, at least MISS_PENALTY_FACTOR thresholds: more than any answer on
+    the body, so leaving a bad frame out never pays).
+
+    mean_error_m: mean over matched joints of the mean distance over the W frames (m);
+    normalized_error_m: the same after removing each matched joint's mean offset (finite
+    frames); recall: matched / ground-truth joints; precision: matched / predicted joints;
+    articulated_recall over the n_articulated joints that bend >= ARTICULATION_MIN_DEG in
+    these frames (NaN without bone transforms), also counted with pairs within 5 and 10 cm
+    (scaled like the threshold); moving joints (n_moving) travel >= MOVING_MIN_M from their
+    median: moving_recall counts those matched whose error is below holding the true joint
+    still at its geometric median (its static error), tracking_skill = 1 - their summed
+    error / summed static error, an unmatched moving joint costing its static error (so any
+    skeleton that does not move scores <= 0, the truth 1); frame_coverage: scored frames
+    with every joint finite / W; motion_skill: 1 - mean normalized error / mean true motion
+    spread over matched joints; nonfinite_fraction: share of scored joint-frames missing.
+    per_joint: one row per true joint: found, the predicted joint, its error, offset along
+    the camera ray (+ = farther than the truth) and across it, the offset-removed error,
+    travel and static error. Read every error next to recall and precision.
+    """
+    if gt.joints.shape[1] == 0:
+        raise EvaluationError('the ground truth has no joints (a captured mesh sequence?): '
+                              'only the registration can be scored')
+    window, answer, n_repeated, n_before = scored_window(pred, gt, start_stamp, end_stamp)
+    if len(window) == 0 or (answer < 0).all():
+        raise EvaluationError('no predicted frame has a ground-truth frame with the same stamp '
+                              f'from the start on (prediction {pred.stamps.min():.3f}..'
+                              f'{pred.stamps.max():.3f} s, ground truth {gt.stamps[0]:.3f}..'
+                              f'{gt.stamps[-1]:.3f} s, scored from frame {n_before})')
+    threshold = match_threshold(gt.subject_scale_m) if threshold_m is None else float(threshold_m)
+    scale = threshold / DEFAULT_MATCH_THRESHOLD_M
+    miss_cost = max(gt.subject_scale_m, MISS_PENALTY_FACTOR * threshold)
+    n_pred = pred.positions.shape[1]
+    predicted = np.full((len(window), n_pred, 3), np.nan)                # (W, J, 3)
+    predicted[answer >= 0] = pred.positions[answer[answer >= 0]]
+    truth = gt.joints[window].astype(np.float64)                          # (W, G, 3)
+    n_gt = truth.shape[1]
+    spans = articulation_spans(gt, window)
+    articulated = spans >= ARTICULATION_MIN_DEG
+    median = geometric_median(truth)                                      # (G, 3)
+    static_error = np.linalg.norm(truth - median, axis=-1).mean(axis=0)   # (G,)
+    travel = np.linalg.norm(truth - np.median(truth, axis=0), axis=-1).max(axis=0)
+    moving = travel >= MOVING_MIN_M * scale
+    finite = np.isfinite(predicted).all(axis=-1)                          # (W, J)
+    report = JointReport(float('nan'), float('nan'), 0.0, n_pred, n_gt, 0, len(window), threshold,
+                         n_articulated=int(articulated.sum()), n_moving=int(moving.sum()),
+                         n_frames_before_start=n_before, n_repeated_frames=n_repeated,
+                         frame_coverage=float(finite.all(axis=1).mean()) if n_pred else 0.0,
+                         nonfinite_fraction=float(1.0 - finite.mean()) if n_pred else 1.0)
+    # (W, J, G) distances: J and G are tens, W a few hundred frames
+    distances = np.linalg.norm(predicted[:, :, None, :] - truth[:, None, :, :], axis=-1)
+    distances = np.where(finite[:, :, None], distances, miss_cost)
+    cost = distances.mean(axis=0)                                          # (J, G)
+    rows, cols = linear_sum_assignment(cost) if n_pred else (np.zeros(0, int), np.zeros(0, int))
+    keep = cost[rows, cols] <= threshold
+    rows, cols = rows[keep], cols[keep]
+    match = np.full(n_gt, -1)
+    match[cols] = rows
+    error = np.where(match >= 0, cost[np.maximum(match, 0), np.arange(n_gt)], np.nan)   # (G,)
+    within = {radius: (match >= 0) & (error <= radius * scale) for radius in RECALL_RADII_M}
+    tracks = (match >= 0) & (error < static_error)
+    report.precision = len(rows) / n_pred if n_pred else 0.0
+    report.n_matched = len(rows)
+    report.recall = len(rows) / n_gt
+    if not np.isnan(spans).all() and articulated.any():
+        report.articulated_recall = float((match >= 0)[articulated].mean())
+        report.articulated_recall_5cm = float(within[0.05][articulated].mean())
+        report.articulated_recall_10cm = float(within[0.10][articulated].mean())
+        report.missed_articulated = [gt.joint_names[g] for g in np.flatnonzero(articulated & (match < 0))]
+    if moving.any():
+        report.moving_recall = float(tracks[moving].mean())
+        report.tracking_skill = float(1.0 - np.where(match >= 0, error, static_error)[moving].sum()
+                                      / max(static_error[moving].sum(), 1e-12))
+        report.missed_moving = [gt.joint_names[g] for g in np.flatnonzero(moving & ~tracks)]
+    # camera rays: the optical frame's origin is the camera, so a true joint's mean position
+    # is its ray
+    rays = truth.mean(axis=0)
+    rays /= np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-9)
+    normalized, spreads = [], []
+    for g in range(n_gt):   # loop over true joints, not points
+        row = {'ground_truth': gt.joint_names[g], 'predicted': None, 'found': False,
+               'found_5cm': bool(within[0.05][g]), 'found_10cm': bool(within[0.10][g]),
+               'articulated': bool(articulated[g]), 'span_deg': float(spans[g]) if np.isfinite(spans[g]) else None,
+               'moving': bool(moving[g]), 'tracks': bool(tracks[g]), 'travel_m': float(travel[g]),
+               'static_error_m': float(static_error[g])}
+        r = int(match[g])
+        if r >= 0:
+            offsets = (predicted[:, r] - truth[:, g])[finite[:, r]]
+            mean_offset = offsets.mean(axis=0)
+            along = float(mean_offset @ rays[g])
+            normalized.append(float(np.linalg.norm(offsets - mean_offset, axis=1).mean()))
+            spreads.append(float(np.linalg.norm(truth[:, g] - truth[:, g].mean(axis=0), axis=1).mean()))
+            row.update(predicted=pred.joint_names[r], found=True, error_m=float(error[g]),
+                       normalized_error_m=normalized[-1], offset_along_ray_m=along,
+                       offset_across_ray_m=float(np.linalg.norm(mean_offset - along * rays[g])))
+        report.per_joint.append(row)
+    if len(rows):
+        report.mean_error_m = float(np.nanmean(error))
+        report.normalized_error_m = float(np.mean(normalized))
+        report.motion_skill = float(1.0 - np.mean(normalized) / max(np.mean(spreads), 1e-9))
+    return report
