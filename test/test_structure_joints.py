@@ -6,6 +6,7 @@ import pytest
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from skel_extract_ros.core.articulated import BoneBlocks
 from skel_extract_ros.core.joints import JointEstimation, JointParams, simplex_least_squares
 from skel_extract_ros.core.rigid import fit_rigid_segments
 from skel_extract_ros.core.structure import (StructureError, StructureParams, _neighbour_graph, _residuals,
@@ -95,7 +96,7 @@ def test_alg2_corrects_a_joint_that_step2_placed_wrong():
 
 
 def test_lbs_deform_is_eq8_over_each_points_bones():
-    """_deform's single matrix product equals Eq. (8) written out: each point moved by each
+    """The single matrix product of Eq. (8) equals it written out: each point moved by each
     of its k bones, weighted (repeated bones in a row add up, as dense weights do)."""
     rng = np.random.default_rng(4)
     F, M, B, k = 5, 40, 6, 3
@@ -105,10 +106,54 @@ def test_lbs_deform_is_eq8_over_each_points_bones():
     influences = np.stack([rng.choice(B, k, replace=False) for _ in range(M)])
     influences[0] = [2, 2, 5]
     weights = rng.dirichlet(np.ones(k), size=M)
-    expected = np.einsum('mk,fmki->fmi', weights,
-                         JointEstimation.influenced_positions(rest, rotations, translations, influences))
-    np.testing.assert_allclose(JointEstimation._deform(rest, rotations, translations, influences, weights),
-                               expected, atol=1e-12)
+    blocks = BoneBlocks(rest, influences, weights, np.array([-1, 0, 1, 2, 0, 4]))
+    written_out = np.zeros((F, M, 3))
+    for f, m, slot in itertools.product(range(F), range(M), range(k)):
+        bone = influences[m, slot]
+        written_out[f, m] += weights[m, slot] * (rotations[f, bone] @ rest[m] + translations[f, bone])
+    np.testing.assert_allclose(blocks.deform(rotations, translations), written_out, atol=1e-12)
+    np.testing.assert_allclose(blocks.contributions(rotations, translations).sum(axis=2), written_out, atol=1e-12)
+
+
+def test_the_bone_block_update_is_the_same_for_a_window_and_for_each_frame():
+    """Alg. 2 updates a window's frames at once, the live fits one frame: the same
+    update, and each block step lowers the frame's energy."""
+    rng = np.random.default_rng(5)
+    F, M, B, k = 4, 60, 4, 2
+    parents = np.array([-1, 0, 1, 1])
+    rest = rng.normal(size=(M, 3))
+    influences = np.stack([rng.choice(B, k, replace=False) for _ in range(M)])
+    weights = rng.dirichlet(np.ones(k), size=M)
+    blocks = BoneBlocks(rest, influences, weights, parents)
+    true_r = Rotation.random(F * B, random_state=3).as_matrix().reshape(F, B, 3, 3)
+    true_t = rng.normal(scale=0.1, size=(F, B, 3))
+    targets = blocks.deform(true_r, true_t) + rng.normal(scale=0.01, size=(F, M, 3))
+    point_weights = rng.uniform(0.5, 2.0, size=(F, M))
+    joints = rng.normal(size=(B, 3))
+    start_r = np.repeat(np.eye(3)[None, None], F, axis=0).repeat(B, axis=1)
+    start_t = np.zeros((F, B, 3))
+    window_r, window_t = start_r.copy(), start_t.copy()
+    blocks.update(targets, point_weights, window_r, window_t, joints, 10.0, 0.1, sweeps=3)
+    for f in range(F):
+        frame_r, frame_t = start_r[f:f + 1].copy(), start_t[f:f + 1].copy()
+        blocks.update(targets[f:f + 1], point_weights[f:f + 1], frame_r, frame_t, joints, 10.0, 0.1, sweeps=3)
+        np.testing.assert_allclose(frame_r[0], window_r[f], atol=1e-10)
+        np.testing.assert_allclose(frame_t[0], window_t[f], atol=1e-10)
+
+    def energy(r, t, anchor_t):
+        data = np.sum(point_weights[:1] * np.sum((targets[:1] - blocks.deform(r, t)) ** 2, axis=2))
+        gaps = [np.sum(((r[0, b] - r[0, parents[b]]) @ joints[b] + t[0, b] - t[0, parents[b]]) ** 2)
+                for b in range(1, B)]
+        return data + 10.0 * sum(gaps) + 0.1 * np.sum((t - anchor_t) ** 2)
+    r, t = start_r[:1].copy(), start_t[:1].copy()
+    anchors = (start_r[:1].copy(), start_t[:1].copy())
+    before = energy(r, t, anchors[1])
+    for _ in range(3):
+        blocks.update(targets[:1], point_weights[:1], r, t, joints, 10.0, 0.1, anchors)
+        after = energy(r, t, anchors[1])
+        assert after <= before + 1e-9
+        before = after
+    assert after < 0.5 * energy(start_r[:1], start_t[:1], anchors[1])
 
 
 def test_simplex_least_squares_is_exact_and_feasible():

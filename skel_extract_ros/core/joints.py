@@ -18,12 +18,10 @@ M-step blocks, each solved exactly:
   programme over the simplex is solved exactly: for each of the 15 supports the KKT system
   with the sum-to-one constraint is solved (vectorised over points) and the best feasible
   support is taken.
-- Bone transforms, bone by bone (Eq. 13-15), all frames at once: every term has the form
-  lambda |R a + T - b|^2 (registration: lambda = zeta w^2, b = (y - u)/w; data: lambda =
-  P1 w^2 / tau, b = (x~ - u)/w; joints: lambda = alpha, a = c_jk, b = R_k c_jk + T_k;
-  E_small: lambda = gamma, a = 0, b = T^pre), u being the other bones' part, so T = mu_b -
-  R mu_a (Eq. 14) and R maximises tr(R Z) with Z = sum lambda (a - mu_a)(b - mu_b)^T +
-  gamma R^pre^T (Eq. 15, SVD with the det correction).
+- Bone transforms, bone by bone (Eq. 13-15), all frames at once (core.articulated): the
+  registration and data terms share a = q_m and add up to one data term per point and
+  frame with weight c = zeta + a and target z (above); joints: lambda = alpha, a = c_jk,
+  b = R_k c_jk + T_k; E_small towards the previous transforms.
 - Joints c_jk: minimise E_Joint, a 3 x 3 solve each (see structure.solve_joints).
 - tau^t as Eq. (7); x^t by Eq. (8).
 """
@@ -36,9 +34,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .articulated import BoneBlocks, blend, dense_weights, influenced_positions
 from .gmm import CandidateCache
 from .point_sets import median_spacing
-from .rigid import rotations_from_h
 from .structure import SkeletalStructure, joint_trajectories, solve_joints
 
 
@@ -94,14 +92,6 @@ class JointEstimate:
     def dense_weights(self) -> np.ndarray:
         """(M, B) weight matrix W."""
         return dense_weights(self.influences, self.weights, len(self.parents))
-
-
-def dense_weights(influences: np.ndarray, weights: np.ndarray, n_bones: int) -> np.ndarray:
-    """(M, B) LBS weight matrix W from each point's k bones (M, k) and their weights (M, k)
-    (a bone listed twice in a row gets both weights)."""
-    dense = np.zeros((len(weights), n_bones))
-    np.add.at(dense, (np.arange(len(weights))[:, None], influences), weights)
-    return dense
 
 
 _SUPPORTS = {k: [s for r in range(1, k + 1) for s in itertools.combinations(range(k), r)] for k in range(1, 5)}
@@ -178,7 +168,7 @@ class JointEstimation:
         edges = [(int(b), int(parents[b])) for b in range(B) if parents[b] >= 0]
         energies = []
         previous = None          # (data terms, E_Joint, alpha) of the previous iterate
-        deformed = self._deform(rest, rotations, translations, influences, weights)
+        deformed = blend(rest, dense_weights(influences, weights, B), rotations, translations)
         # The E-step was two thirds of the time. Each frame keeps its observations' candidate
         # centroids across iterations (core.gmm.CandidateCache: measured here, a fifth of the
         # queries, joints within 0.1 mm of querying every time). Frames are independent, and
@@ -207,13 +197,14 @@ class JointEstimation:
                     if abs(before - after) <= p.tolerance * abs(after):
                         break
                 previous = (data, joint_term, alpha)
+                # the registration and data terms as one: weight c and target z per point and frame
                 a = P1 / tau[:, None]                                                    # (F, M)
-                influences, weights = self._update_weights(rest, rotations, translations, registered, targets,
-                                                              a, k)
-                self.update_bones(rest, registered, targets, a, rotations, translations, influences, weights,
-                                   joints, edges, alpha)
+                c = a + p.zeta
+                z = (a[..., None] * targets + p.zeta * registered) / c[..., None]        # (F, M, 3)
+                influences, weights = self._update_weights(rest, rotations, translations, c, z, k)
+                deformed = BoneBlocks(rest, influences, weights, parents).update(
+                    z, c, rotations, translations, joints, alpha, p.gamma)
                 joints = solve_joints(rotations, translations, parents, anchors, p.eta)
-                deformed = self._deform(rest, rotations, translations, influences, weights)
                 tau = np.array([max(s.squared_residual(x) / (3.0 * max(s.Np, 1e-12)), p.min_tau) if s else t
                                 for s, x, t in zip(stats, deformed, tau)])
                 alpha *= p.alpha_growth
@@ -222,33 +213,6 @@ class JointEstimation:
         return JointEstimate(influences, weights, rotations, translations, joints, parents, tau, energies)
 
     # ------------------------------------------------------------------------------------
-    @staticmethod
-    def influenced_positions(rest, rotations, translations, influences) -> np.ndarray:
-        """(F, M, k, 3) each rest point moved by each of its k influencing bones: R_j^t q_m +
-        T_j^t. Only those k: every point under every bone is (F, B, M, 3), 55 MB for a
-        60-frame window of a 19-bone body, and was the joint node's peak memory."""
-        F, M, k = len(rotations), len(rest), influences.shape[1]
-        positions = np.empty((F, M, k, 3))
-        for slot in range(k):   # k <= max_influences (4): a few (F, M, 3, 3) products
-            bones = influences[:, slot]
-            positions[:, :, slot] = (np.einsum('fmij,mj->fmi', rotations[:, bones], rest)
-                                     + translations[:, bones])
-        return positions
-
-    @staticmethod
-    def _deform(rest, rotations, translations, influences, weights) -> np.ndarray:
-        """Eq. (8): (F, M, 3) LBS positions. sum_b W_mb (R_b^t q_m + T_b^t) as one matrix
-        product, the (M, 3B) rows W_mb q_m times the (3B, 3F) stacked rotations, plus W T:
-        4 against 21 ms for a 60-frame window of 2 000 points (forming each point under each
-        of its bones first)."""
-        F, B = rotations.shape[:2]
-        M = len(rest)
-        dense = dense_weights(influences, weights, B)
-        weighted_rest = (dense[:, :, None] * rest[:, None, :]).reshape(M, B * 3)        # (M, 3B)
-        stacked = np.transpose(rotations, (1, 3, 0, 2)).reshape(B * 3, F * 3)          # (3B, 3F)
-        moved = weighted_rest @ stacked + dense @ np.transpose(translations, (1, 0, 2)).reshape(B, F * 3)
-        return np.ascontiguousarray(np.transpose(moved.reshape(M, F, 3), (1, 0, 2)))
-
     @staticmethod
     def _joint_energy(rotations, translations, joints, anchors, edges, eta: float) -> float:
         """E_Joint (m^2): eta sum |c_jk - c~_jk|^2 + sum_t sum |(R_j c + T_j) - (R_k c + T_k)|^2."""
@@ -278,65 +242,16 @@ class JointEstimation:
                 + c.T @ np.sum(translations ** 2, axis=2)
                 + 2.0 * np.einsum('mbj,mj->mb', (c.T @ carried).reshape(M, B, 3), rest))
 
-    def _update_weights(self, rest, rotations, translations, registered, targets, a, k):
+    def _update_weights(self, rest, rotations, translations, c, z, k):
         """Per point: the k bones with the smallest single-bone objective, then the exact
-        simplex-constrained least squares on them."""
-        zeta = self.params.zeta
-        F, M, _ = registered.shape
-        c = a + zeta                                                                  # (F, M)
-        z = (a[..., None] * targets + zeta * registered) / c[..., None]               # (F, M, 3)
+        simplex-constrained least squares on them (c (F, M) and z (F, M, 3): the data
+        term's weight and target)."""
+        F, M = c.shape
         single = self.single_bone_costs(rest, rotations, translations, c, z)
         influences = np.argsort(single, axis=1)[:, :k]
-        chosen = self.influenced_positions(rest, rotations, translations, influences)  # (F, M, k, 3)
+        chosen = influenced_positions(rest, rotations, translations, influences)      # (F, M, k, 3)
         per_point = chosen.transpose(1, 2, 0, 3).reshape(M, k, F * 3)                 # (M, k, 3F)
         weighted = (chosen * c[:, :, None, None]).transpose(1, 2, 0, 3).reshape(M, k, F * 3)
         G = weighted @ per_point.transpose(0, 2, 1)
         h = (weighted @ z.transpose(1, 0, 2).reshape(M, F * 3, 1))[..., 0]
         return influences, simplex_least_squares(G, h)
-
-    def update_bones(self, rest, registered, targets, a, rotations, translations, influences, weights,
-                      joints, edges, alpha) -> None:
-        """Eq. (13)-(15), bone after bone, every frame at once (in place)."""
-        p = self.params
-        F, M, _ = registered.shape
-        B = rotations.shape[1]
-        neighbours = {b: [] for b in range(B)}
-        for child, parent in edges:
-            neighbours[child].append((parent, child))   # joint stored on the child bone
-            neighbours[parent].append((child, child))
-        contributions = weights[None, :, :, None] * self.influenced_positions(rest, rotations, translations,
-                                                                              influences)
-        deformed = contributions.sum(axis=2)                                          # (F, M, 3)
-        for bone in range(B):  # loop over bones (a few dozen), vectorised over frames and points
-            # each point lists a bone at most once, so m has no repeats
-            m, slot = np.nonzero((influences == bone) & (weights > 1e-8))
-            w = weights[m, slot]
-            points = rest[m]                                                          # (P, 3)
-            others = deformed[:, m] - contributions[:, m, slot]                       # (F, P, 3)
-            # The registration and data terms share a = q_m, so they add up to one term with
-            # lambda = zeta w^2 + a w^2 and lambda b = w (zeta (y - u) + a (x~ - u)).
-            lam_points = (p.zeta + a[:, m]) * w[None, :] ** 2                          # (F, P)
-            lam_b = w[None, :, None] * (p.zeta * (registered[:, m] - others)
-                                        + a[:, m, None] * (targets[:, m] - others))   # (F, P, 3)
-            total = lam_points.sum(axis=1) + p.gamma                                   # E_small: a = 0
-            sum_a = lam_points @ points                                               # (F, 3)
-            sum_b = lam_b.sum(axis=1) + p.gamma * translations[:, bone]
-            sum_ab = np.transpose(lam_b, (0, 2, 1)) @ points                          # (F, 3, 3), transposed
-            for other, joint_bone in neighbours[bone]:
-                c = joints[joint_bone]
-                target = np.einsum('fij,j->fi', rotations[:, other], c) + translations[:, other]   # (F, 3)
-                total = total + alpha
-                sum_a = sum_a + alpha * c
-                sum_b = sum_b + alpha * target
-                sum_ab = sum_ab + alpha * target[:, :, None] * c[None, None, :]
-            mu_a = sum_a / total[:, None]
-            mu_b = sum_b / total[:, None]
-            # sum lambda (a - mu_a)(b - mu_b)^T = sum lambda a b^T - total mu_a mu_b^T
-            Z = np.transpose(sum_ab, (0, 2, 1)) - total[:, None, None] * mu_a[:, :, None] * mu_b[:, None, :]
-            Z += p.gamma * np.transpose(rotations[:, bone], (0, 2, 1))
-            R = rotations_from_h(Z)
-            rotations[:, bone] = R
-            translations[:, bone] = mu_b - np.einsum('fij,fj->fi', R, mu_a)
-            new = w[None, :, None] * (points @ np.transpose(R, (0, 2, 1)) + translations[:, bone][:, None, :])
-            contributions[:, m, slot] = new
-            deformed[:, m] = others + new

@@ -2,7 +2,7 @@ r"""Live joints: the learned LBS model fitted to one new frame at a time.
 
 After Alg. 2 has run, the skeleton (rest points Q (M, 3), weights W, joints c_jk, bone
 tree) is fixed; for every later frame only the bone transforms change. Two trackers fit
-them, with the same exact bone-by-bone block update (Eq. 13-15, as in Alg. 2):
+them, with Alg. 2's LBS and bone-block update (core.articulated) on one frame:
 
 `LiveJointTracker`, on a *registered* frame Y (M, 3) (offline `run`, frames that are not
 key frames): the single-frame part of Eq. (12) without the GMM term,
@@ -55,10 +55,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from .articulated import BoneBlocks
 from .gmm import CandidateCache
 from .joints import JointParams
 from .point_sets import finite_rows, median_spacing
-from .rigid import fit_rigid_segments, rotations_from_h, weighted_rigid_fit
+from .rigid import fit_rigid_segments, weighted_rigid_fit
 from .skeleton_model import SkeletonModel
 from .structure import joint_trajectories
 
@@ -79,16 +80,9 @@ WHOLE_BODY_ROUNDS = 3
 
 
 class _BoneBlocks:
-    """The exact bone-by-bone update of Eq. 13-15 for one frame of a fixed SkeletonModel.
-
-    Every term of a bone's energy has the form lambda |R a + T - b|^2: the data (lambda =
-    weight_m w_mj^2, a = q_m, b = (target_m - the other bones' part) / w_mj), the joints
-    (lambda = alpha, a = c_jk, b = R_k c_jk + T_k) and E_small (lambda = gamma, a = 0, b =
-    the anchor translation); so T = mu_b - R mu_a and R maximises tr(R Z),
-    Z = sum lambda a b^T - Lambda mu_a mu_b^T + gamma R_anchor^T. The per-bone point sets
-    are precomputed once, since the weights no longer change (Alg. 2's general update
-    spends ~1 ms per bone re-deriving them).
-    """
+    """One frame of a fixed SkeletonModel: its LBS (Eq. 8) and the block update of Eq.
+    13-15 (core.articulated.BoneBlocks, with one frame), on a strided subset of its points
+    when max_points is given."""
 
     def __init__(self, model: SkeletonModel, params: JointParams | None, sweeps: int,
                  max_points: int | None = None):
@@ -104,39 +98,14 @@ class _BoneBlocks:
         self._subset = np.arange(0, len(rest), stride)
         rest = rest[self._subset]
         self._rest = rest
-        self._influences = np.asarray(model.influences)[self._subset]
-        self._weights = np.asarray(model.weights, dtype=np.float64)[self._subset]
+        influences = np.asarray(model.influences)[self._subset]
+        weights = np.asarray(model.weights, dtype=np.float64)[self._subset]
         # the bone each point follows most: the rigid initialisation fits those points
-        self._dominant = self._influences[np.arange(len(rest)), np.argmax(self._weights, axis=1)]
+        self._dominant = influences[np.arange(len(rest)), np.argmax(weights, axis=1)]
         self._parents = np.asarray(model.parents)
         self._joints = np.asarray(model.rest_joints, dtype=np.float64)
         self._alpha = self.params.zeta * len(rest)
-        # every (point, slot) a bone carries, flattened in bone order (bone b's entries are
-        # start[b]:start[b + 1]): what a sweep's point weights fix (each bone's lambda total,
-        # mu_a, weighted rest points) is computed for all bones at once; per bone, views of
-        # its entries (index, slot, weight, rest position) and its joints (other bone, c_jk)
-        point, slot = np.nonzero(self._weights > 1e-8)
-        bone_of_entry = self._influences[point, slot]
-        order = np.argsort(bone_of_entry, kind='stable')      # row-major within each bone
-        point, slot, bone_of_entry = point[order], slot[order], bone_of_entry[order]
-        n_bones = len(self._parents)
-        self._entry_start = np.concatenate([[0], np.cumsum(np.bincount(bone_of_entry, minlength=n_bones))])
-        self._entry_point = point
-        self._entry_weight = self._weights[point, slot]
-        self._entry_rest = rest[point]
-        # (B, E) one-hot, row b sums bone b's entries (B bones x a few entries a model point)
-        self._entry_sum = (bone_of_entry[None, :] == np.arange(n_bones)[:, None]).astype(np.float64)
-        self._bones = []
-        for bone in range(n_bones):
-            span = slice(self._entry_start[bone], self._entry_start[bone + 1])
-            links = [(int(self._parents[bone]), self._joints[bone])] if self._parents[bone] >= 0 else []
-            links += [(int(child), self._joints[child]) for child in np.flatnonzero(self._parents == bone)]
-            others = np.array([k for k, _ in links], dtype=int)
-            centres = np.array([c for _, c in links]).reshape(-1, 3)
-            self._bones.append((point[span], slot[span], self._entry_weight[span], self._entry_rest[span],
-                                others, centres))
-        self._link_counts = np.array([len(b[4]) for b in self._bones], dtype=np.float64)
-        self._centre_sums = np.array([b[5].sum(axis=0) for b in self._bones]).reshape(-1, 3)
+        self._blocks = BoneBlocks(rest, influences, weights, self._parents)
 
     @property
     def n_bones(self) -> int:
@@ -144,53 +113,21 @@ class _BoneBlocks:
 
     def deform(self, rotations: np.ndarray, translations: np.ndarray) -> np.ndarray:
         """(M, 3) LBS-deformed rest points (Eq. 8) for rotations (B, 3, 3), translations (B, 3)."""
-        return self._contributions(rotations, translations).sum(axis=1)
-
-    def _contributions(self, rotations, translations) -> np.ndarray:
-        """(M, k, 3) w_mj (R_j q_m + T_j) for each point's k influencing bones."""
-        moved = np.einsum('mkij,mj->mki', rotations[self._influences], self._rest) + translations[self._influences]
-        return self._weights[..., None] * moved
+        return self._blocks.deform(rotations[None], translations[None])[0]
 
     def sweep(self, targets: np.ndarray, point_weights, rotations: np.ndarray, translations: np.ndarray,
-              anchors: tuple | None = None, alpha: float | None = None) -> None:
+              anchors: tuple | None = None, alpha: float | None = None) -> np.ndarray:
         """`self.sweeps` passes of the block update, in place on rotations (B, 3, 3) and
         translations (B, 3). targets (M, 3) m; point_weights: the data term's weight per
         point (M,) or one for all (1/m^2); anchors: (rotations, translations) E_small pulls
-        towards (None: each bone's current transform, a proximal step). Returns the (M, 3)
-        deformed rest points of the new transforms (Eq. 8)."""
-        gamma, alpha = self.params.gamma, self._alpha if alpha is None else alpha
-        point_weights = np.broadcast_to(np.asarray(point_weights, dtype=np.float64), (len(self._rest),))
-        contributions = self._contributions(rotations, translations)
-        deformed = contributions.sum(axis=1)
-        # what the point weights fix for the whole sweep, every bone at once: lambda / w and
-        # lambda per entry, each bone's lambda total and mu_a, the weighted rest points
-        weight_w = point_weights[self._entry_point] * self._entry_weight            # (E,)
-        lam = weight_w * self._entry_weight
-        lam_totals = self._entry_sum @ lam + alpha * self._link_counts + gamma       # (B,)
-        mu_as = (self._entry_sum @ (lam[:, None] * self._entry_rest)
-                 + alpha * self._centre_sums) / lam_totals[:, None]                  # (B, 3)
-        weighted_rest = weight_w[:, None] * self._entry_rest                         # (E, 3)
-        entry_targets = targets[self._entry_point]                                   # (E, 3)
-        start = self._entry_start
-        for _ in range(self.sweeps):
-            # (per-bone numpy calls on small arrays: the cheapest forms are used, this runs
-            # for every bone of every live frame)
-            for bone, (m, slot, w, q, others, centres) in enumerate(self._bones):
-                span = slice(start[bone], start[bone + 1])
-                anchor_r = rotations[bone] if anchors is None else anchors[0][bone]
-                anchor_t = translations[bone] if anchors is None else anchors[1][bone]
-                lam_total, mu_a = lam_totals[bone], mu_as[bone]
-                residual = entry_targets[span] - (deformed[m] - contributions[m, slot])   # = w b
-                carried = (rotations[others] @ centres[:, :, None])[:, :, 0] + translations[others]
-                mu_b = (weight_w[span] @ residual + alpha * carried.sum(axis=0) + gamma * anchor_t) / lam_total
-                Z = (weighted_rest[span].T @ residual + alpha * centres.T @ carried
-                     - lam_total * mu_a[:, None] * mu_b[None, :] + gamma * anchor_r.T)
-                R = rotations_from_h(Z)
-                rotations[bone], translations[bone] = R, mu_b - R @ mu_a
-                new = w[:, None] * (q @ R.T + translations[bone])
-                deformed[m] += new - contributions[m, slot]
-                contributions[m, slot] = new
-        return deformed
+        towards (None: each bone's current transform, a proximal step); alpha: the joint
+        weight (None: Alg. 2's zeta M). Returns the (M, 3) deformed rest points of the new
+        transforms (Eq. 8)."""
+        anchors = None if anchors is None else (anchors[0][None], anchors[1][None])
+        return self._blocks.update(np.asarray(targets, dtype=np.float64)[None], np.asarray(point_weights),
+                                   rotations[None], translations[None], self._joints,
+                                   self._alpha if alpha is None else alpha, self.params.gamma, anchors,
+                                   self.sweeps)[0]
 
     def move_whole_body(self, targets: np.ndarray, point_weights: np.ndarray, deformed: np.ndarray,
                         rotations: np.ndarray, translations: np.ndarray) -> None:

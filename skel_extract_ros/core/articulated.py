@@ -1,0 +1,163 @@
+r"""The articulated model's two equations, written once: linear blend skinning (Eq. 8) and
+the exact bone-by-bone update of the bone transforms (Eq. 13-15).
+
+Rest points q_m (M, 3) follow up to k bones each with LBS weights w_mj (rows sum to 1):
+
+    x_m^t = sum_j w_mj (R_j^t q_m + T_j^t)                                   (Eq. 8)
+
+Every term of one bone's energy, with the other bones held, has the form
+lambda |R a + T - b|^2:
+- data: lambda = c_m w_mj^2, a = q_m, b = (z_m - u_m) / w_mj, with z_m the point's target,
+  c_m its weight and u_m the other bones' part of x_m;
+- joints: lambda = alpha, a = c_jk, b = R_k c_jk + T_k for each joint with a neighbour k;
+- E_small: lambda = gamma, a = 0, b = the anchor translation, plus gamma tr(R R_anchor^T).
+So T = mu_b - R mu_a (Eq. 14) and R maximises tr(R Z) with
+Z = sum lambda a b^T - Lambda mu_a mu_b^T + gamma R_anchor^T (Eq. 15, SVD with the det
+correction), Lambda the sum of the lambdas.
+
+Alg. 2 (core.joints) puts its registration and GMM terms into one data term per frame:
+c = zeta + P1 / tau and z = (zeta y + (P1 / tau) x~) / c. The live fits (core.live) use one
+frame: c = P1 / tau and z the posterior mean (camera frames), or c = zeta and z = y
+(registered frames). Both go through `BoneBlocks.update`, every frame at once.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .rigid import rotations_from_h
+
+
+def dense_weights(influences: np.ndarray, weights: np.ndarray, n_bones: int) -> np.ndarray:
+    """(M, B) LBS weight matrix W from each point's k bones (M, k) and their weights (M, k)
+    (a bone listed twice in a row gets both weights)."""
+    dense = np.zeros((len(weights), n_bones))
+    np.add.at(dense, (np.arange(len(weights))[:, None], influences), weights)
+    return dense
+
+
+def influenced_positions(rest, rotations, translations, influences) -> np.ndarray:
+    """(F, M, k, 3) each rest point (M, 3) moved by each of its k influencing bones (M, k):
+    R_j^t q_m + T_j^t for rotations (F, B, 3, 3), translations (F, B, 3). Only those k:
+    every point under every bone is (F, B, M, 3), tens of MB for a window of a body."""
+    F, M, k = len(rotations), len(rest), influences.shape[1]
+    positions = np.empty((F, M, k, 3))
+    for slot in range(k):   # k <= max_influences (4): a few (F, M, 3, 3) products
+        bones = influences[:, slot]
+        positions[:, :, slot] = (np.einsum('fmij,mj->fmi', rotations[:, bones], rest)
+                                 + translations[:, bones])
+    return positions
+
+
+def blend(rest, dense, rotations, translations) -> np.ndarray:
+    """Eq. (8): (F, M, 3) LBS positions of rest (M, 3) with the (M, B) weight matrix for
+    rotations (F, B, 3, 3), translations (F, B, 3). sum_b W_mb (R_b^t q_m + T_b^t) as one
+    matrix product, the (M, 3B) rows W_mb q_m times the (3B, 3F) stacked rotations, plus
+    W T: five times faster on a window than moving each point by each of its bones."""
+    F, B = rotations.shape[:2]
+    M = len(rest)
+    weighted_rest = (dense[:, :, None] * rest[:, None, :]).reshape(M, B * 3)          # (M, 3B)
+    stacked = np.transpose(rotations, (1, 3, 0, 2)).reshape(B * 3, F * 3)            # (3B, 3F)
+    moved = weighted_rest @ stacked + dense @ np.transpose(translations, (1, 0, 2)).reshape(B, F * 3)
+    return np.ascontiguousarray(np.transpose(moved.reshape(M, F, 3), (1, 0, 2)))
+
+
+class BoneBlocks:
+    """Eq. 8 and the block update of Eq. 13-15 for rest points with fixed LBS weights.
+
+    rest (M, 3) m; influences (M, k) bone indices; weights (M, k) LBS weights; parents (B,)
+    the bone tree (-1: root). The joint between bone b and its parent is stored on b, so a
+    bone's joints are its own (with its parent) and its children's.
+
+    What the weights fix is derived once: every (point, slot) a bone carries, flattened in
+    bone order (bone b's entries are entry_start[b]:entry_start[b + 1]), so a sweep sums
+    what its point weights fix (each bone's lambda total and mu_a) for all bones at once.
+    """
+
+    def __init__(self, rest: np.ndarray, influences: np.ndarray, weights: np.ndarray, parents: np.ndarray):
+        self.rest = np.asarray(rest, dtype=np.float64)
+        self.influences = np.asarray(influences)
+        self.weights = np.asarray(weights, dtype=np.float64)
+        self.parents = np.asarray(parents)
+        n_bones = len(self.parents)
+        self.dense = dense_weights(self.influences, self.weights, n_bones)
+        point, slot = np.nonzero(self.weights > 1e-8)
+        bone_of_entry = self.influences[point, slot]
+        order = np.argsort(bone_of_entry, kind='stable')      # row-major within each bone
+        self._entry_point, self._entry_slot = point[order], slot[order]
+        bone_of_entry = bone_of_entry[order]
+        self._entry_start = np.concatenate([[0], np.cumsum(np.bincount(bone_of_entry, minlength=n_bones))])
+        self._entry_weight = self.weights[self._entry_point, self._entry_slot]
+        self._entry_rest = self.rest[self._entry_point]
+        # (B, E) one-hot: row b sums bone b's entries (B bones x a few entries a point)
+        self._entry_sum = (bone_of_entry[None, :] == np.arange(n_bones)[:, None]).astype(np.float64)
+        # each bone's joints: (the other bone, the bone the joint is stored on)
+        self._links = []
+        for bone in range(n_bones):
+            links = [(int(self.parents[bone]), bone)] if self.parents[bone] >= 0 else []
+            links += [(int(child), int(child)) for child in np.flatnonzero(self.parents == bone)]
+            self._links.append((np.array([o for o, _ in links], dtype=int), np.array([j for _, j in links], dtype=int)))
+        self._link_counts = np.array([len(others) for others, _ in self._links], dtype=np.float64)
+
+    @property
+    def n_bones(self) -> int:
+        return len(self.parents)
+
+    def deform(self, rotations: np.ndarray, translations: np.ndarray) -> np.ndarray:
+        """Eq. (8): (F, M, 3) for rotations (F, B, 3, 3), translations (F, B, 3)."""
+        return blend(self.rest, self.dense, rotations, translations)
+
+    def contributions(self, rotations: np.ndarray, translations: np.ndarray) -> np.ndarray:
+        """(F, M, k, 3) w_mj (R_j q_m + T_j) for each point's k influencing bones."""
+        return self.weights[None, :, :, None] * influenced_positions(self.rest, rotations, translations,
+                                                                     self.influences)
+
+    def update(self, targets: np.ndarray, point_weights, rotations: np.ndarray, translations: np.ndarray,
+               joints: np.ndarray, alpha: float, gamma: float, anchors: tuple | None = None,
+               sweeps: int = 1) -> np.ndarray:
+        """`sweeps` passes of Eq. (13)-(15), bone after bone, every frame at once, in place
+        on rotations (F, B, 3, 3) and translations (F, B, 3).
+
+        targets (F, M, 3) m; point_weights: the data term's weight c (F, M), or anything
+        that broadcasts to it (1/m^2); joints (B, 3) rest-frame c_jk; alpha, gamma: the
+        joint and E_small weights; anchors: (rotations, translations) E_small pulls towards
+        (None: each bone's transform as the update reaches it, a proximal step). Returns
+        the (F, M, 3) contributions' sum, Eq. (8) at the new transforms."""
+        F = len(rotations)
+        point_weights = np.broadcast_to(np.asarray(point_weights, dtype=np.float64), (F, len(self.rest)))
+        contributions = self.contributions(rotations, translations)
+        deformed = contributions.sum(axis=2)
+        weight_w = point_weights[:, self._entry_point] * self._entry_weight          # (F, E) c w
+        lam = weight_w * self._entry_weight                                          # (F, E) c w^2
+        lam_totals = lam @ self._entry_sum.T + alpha * self._link_counts + gamma       # (F, B)
+        centre_sums = np.stack([joints[stored].sum(axis=0) for _, stored in self._links])      # (B, 3)
+        mu_as = (np.matmul(self._entry_sum, lam[:, :, None] * self._entry_rest)
+                 + alpha * centre_sums) / lam_totals[..., None]                        # (F, B, 3)
+        weighted_rest = weight_w[..., None] * self._entry_rest                         # (F, E, 3)
+        entry_targets = targets[:, self._entry_point]                                  # (F, E, 3)
+        start = self._entry_start
+        for _ in range(sweeps):
+            for bone, (others, stored) in enumerate(self._links):   # loop over bones, vectorised
+                span = slice(start[bone], start[bone + 1])
+                m, slot = self._entry_point[span], self._entry_slot[span]
+                anchor_r = rotations[:, bone] if anchors is None else anchors[0][:, bone]
+                anchor_t = translations[:, bone] if anchors is None else anchors[1][:, bone]
+                lam_total, mu_a = lam_totals[:, bone], mu_as[:, bone]                 # (F,), (F, 3)
+                residual = entry_targets[:, span] - (deformed[:, m] - contributions[:, m, slot])   # = w b
+                centres = joints[stored]                                               # (L, 3)
+                carried = (np.matmul(rotations[:, others], centres[None, :, :, None])[..., 0]
+                           + translations[:, others])                                  # (F, L, 3)
+                mu_b = (np.matmul(weight_w[:, None, span], residual)[:, 0] + alpha * carried.sum(axis=1)
+                        + gamma * anchor_t) / lam_total[:, None]
+                Z = (np.matmul(np.transpose(weighted_rest[:, span], (0, 2, 1)), residual)
+                     + alpha * np.matmul(centres.T, carried)
+                     - lam_total[:, None, None] * mu_a[:, :, None] * mu_b[:, None, :]
+                     + gamma * np.transpose(anchor_r, (0, 2, 1)))
+                # one frame (the live fits): the single-matrix path, a fraction of the batch's cost
+                R = rotations_from_h(Z[0])[None] if F == 1 else rotations_from_h(Z)
+                rotations[:, bone] = R
+                translations[:, bone] = mu_b - np.matmul(R, mu_a[..., None])[..., 0]
+                new = self._entry_weight[span][None, :, None] * (
+                    np.matmul(self._entry_rest[span], np.transpose(R, (0, 2, 1))) + translations[:, bone][:, None, :])
+                deformed[:, m] += new - contributions[:, m, slot]
+                contributions[:, m, slot] = new
+        return deformed
