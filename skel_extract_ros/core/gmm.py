@@ -57,10 +57,9 @@ def _query(observed, centroids, n_neighbours, radius):
     K = min(n_neighbours, M)
     # The k-d tree is over the centroids and rebuilt per call; its query cost does not grow
     # with sigma, unlike a fixed-radius search that visits every centroid in the ball.
-    # pykdtree, not scipy's cKDTree: the same neighbours (M and inf where none, as scipy),
-    # built and queried in 2.8 against 3.5 ms on one core for 2000 centroids and 2800
-    # observations, 1.4 ms on two (OpenMP; the nodes keep it to one: nodes/__init__.py),
-    # and this runs in every EM iteration.
+    # pykdtree, not scipy's cKDTree: the same neighbours (M and inf where none, as scipy)
+    # built and queried in less time, and this runs in every EM iteration. Its OpenMP team
+    # uses every core unless limited; the nodes keep it to one thread (nodes/__init__.py).
     centroids = np.ascontiguousarray(centroids, dtype=np.float64)
     observed = np.ascontiguousarray(observed, dtype=np.float64)
     distances, idx = KDTree(centroids).query(observed, k=K, distance_upper_bound=radius)
@@ -111,8 +110,8 @@ class CandidateCache:
     in Alg. 2) is repeated only when a centroid has moved more than `spacing` since the
     last query, or the truncation radius has grown past the radius queried. The posteriors
     are exact over the candidates, the truncation radius applied; a candidate list can
-    miss a centroid that came within the K nearest since the query (measured: Alg. 2's
-    joints within 0.1 mm of querying every iteration, bench/README.md).
+    miss a centroid that came within the K nearest since the query: the price of the cache,
+    small while no centroid has moved a spacing.
 
     observed (N, 3) m; spacing m (the rest points' median spacing: a centroid that moved
     less has not passed another); radius_margin: the query reaches this many times the

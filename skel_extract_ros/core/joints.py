@@ -47,8 +47,7 @@ class JointParams:
     omega: outlier weight omega' (Eq. 11); eta: joint data weight; zeta: weight of
     E_Register; gamma: weight of E_small; alpha_growth: alpha = zeta * M * growth^iteration;
     initial_tau: tau^t at the start (m^2); max_iterations, tolerance: EM stopping (10, not
-    the 20 of Alg. 1: on the real-motion benchmark the joints after 10 iterations are as
-    good as after 20, at half the time, bench/README.md);
+    the 20 of Alg. 1: the joints settle within 10);
     max_influences: bones per point (Eq. 12b); e_step_neighbours, truncation_sigmas: the
     truncated E-step (see core.gmm); min_tau: floor on tau (m^2).
     """
@@ -169,10 +168,9 @@ class JointEstimation:
         energies = []
         previous = None          # (data terms, E_Joint, alpha) of the previous iterate
         deformed = blend(rest, dense_weights(influences, weights, B), rotations, translations)
-        # The E-step was two thirds of the time. Each frame keeps its observations' candidate
-        # centroids across iterations (core.gmm.CandidateCache: measured here, a fifth of the
-        # queries, joints within 0.1 mm of querying every time). Frames are independent, and
-        # the queries and numpy reductions release the GIL, so threads use every core.
+        # The E-step dominates: each frame keeps its observations' candidate centroids across
+        # iterations (core.gmm.CandidateCache). Frames are independent, and the queries and
+        # numpy reductions release the GIL, so threads use every core.
         spacing = median_spacing(rest)
         caches = [CandidateCache(v, spacing, p.e_step_neighbours) if len(v) else None for v in observed]
         pool = ThreadPoolExecutor(max_workers=min(os.cpu_count() or 1, 8))

@@ -36,16 +36,7 @@ camera:
   `diverged`; one that also leaves a bone without data is `lost`.
 `CameraTracker` is the joint node's live path (live_frames camera): every camera frame is
 fitted from the model's fit of the newest registered frame at or before it (up to a
-second old once tracking), a diverged frame gets that registered pose. Measured on real
-motion at the node's cadence (bench/README.md, "Reach"): p95 distance to the offline
-joints better or equal on 9 of 10 clip/scene rows (walk 232 -> 67 cm, cow 37 -> 27 cm),
-worse on one (a wave with little motion, 2.1 -> 3.3 cm). Measured and not kept: tracking
-from its own previous frames, corrected by each registered frame at its stamp (drifts
-between registrations: worse than starting from the registered pose on 3 of 4 rows);
-moving each bone's subtree about its joint as well as the whole body (a limb bent
-differently pulls the fit of everything it hangs from); before: recapturing bones inside
-the fit (core.recapture), an E-step over the model points the camera can see
-(registration.ObservedView), more iterations.
+second old once tracking), a diverged frame gets that registered pose.
 
     >>> tracker = ArticulatedTracker(model, JointParams())
     >>> tracker.seed(rotations, translations)           # (B, 3, 3), (B, 3): a known pose
@@ -69,13 +60,11 @@ LOST_SUPPORT = 0.1
 # bones this small (points of the model subset) are not counted when deciding `lost`
 LOST_MIN_POINTS = 10
 # the live fit's joint weight in its first EM iteration, relative to Alg. 2's zeta * M (it
-# grows geometrically to zeta * M at the last): measured on real motion, 1e-4 and 1e-6 alike,
-# 1e-2 no better than no ramp, 1e-12 (no joint term at first) worse (bench/README.md,
-# "Reach: the whole-body move and the joint weight ramp")
+# grows geometrically to zeta * M at the last): loose enough for a chain to follow its
+# data, not so loose that the joints come apart in the first iteration
 LIVE_ALPHA_START = 1e-4
 # reweighting rounds of the whole-body move (Cauchy weights, the scale the median residual):
-# a limb bent otherwise than its starting pose should not turn the body. 3 and 10 measured
-# alike; 0 leaves the two-bone bend 10 % further off and real walks 0.5-1.3 cm (ground truth)
+# a limb bent otherwise than its starting pose should not turn the body
 WHOLE_BODY_ROUNDS = 3
 
 
@@ -139,9 +128,8 @@ class _BoneBlocks:
         Why: with the joint term as stiff as Alg. 2's, the bone-by-bone update cannot move
         the body: each bone is held at its joints by neighbours that have not moved yet, so
         a person who stepped 20 cm since the registered frame stays where that frame put
-        them (measured on real walking: bench/README.md, "Reach"). Moving sub-chains the
-        same way (each bone's subtree turned about its joint) was measured too and not
-        kept: a limb bent differently pulls the fit of everything it hangs from.
+        them. Sub-chains are not moved this way: a limb bent differently would pull the fit
+        of everything it hangs from.
         """
         if point_weights.sum() <= 1e-12:
             return
@@ -263,8 +251,8 @@ class ArticulatedTracker(_BoneBlocks):
         deformed = self.deform(rotations, translations)
         # One k-d tree query at the prediction serves the reach and the E-steps: each
         # observation keeps its nearest model points, however far, as candidates until a
-        # model point has moved a rest spacing (core.gmm.CandidateCache); it was 4 queries a
-        # frame, a third of the fit's time.
+        # model point has moved a rest spacing (core.gmm.CandidateCache), instead of a query
+        # for every E-step.
         cache = CandidateCache(observed, self._spacing, params.e_step_neighbours, radius_margin=np.inf)
         candidates = cache.candidates_for(deformed)
         # reach: the prediction's own misfit sets the first tau (see the module docstring)
@@ -322,9 +310,8 @@ class CameraTracker:
     once a second once a skeleton is tracked: that pose is up to a second old, and the
     fit's reach carries body and limbs to where the points are now). A frame whose fit
     diverges (ArticulatedTracker.diverged: it explains the data far worse than the recent
-    frames) gets the registered pose's joints instead. Measured against carrying the fit
-    from frame to frame and correcting it by each registration: better on most real
-    clips, which drift between registrations (bench/README.md, "Reach").
+    frames) gets the registered pose's joints instead. Not carried from frame to frame: a
+    fit carried between registrations drifts.
 
     tracker: the ArticulatedTracker; fit: a LiveJointTracker of the same model (registered
     points -> bone transforms). Stamps are integers (ns).

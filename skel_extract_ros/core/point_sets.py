@@ -1,13 +1,13 @@
 """The point-set operations of the per-frame path, in numpy / scipy: voxel-grid centroids,
 statistical outlier removal and a RANSAC plane.
 
-Open3D does each of them well, but importing it costs a process 170 MB resident (measured:
-a node with rclpy is 99 MB, 270 MB once Open3D is imported), and the registration node
-needs these three for every camera frame, for as long as it runs. Written here to give
-the same results as Open3D's `voxel_down_sample`, `remove_statistical_outlier` and
-`segment_plane` (same definitions, tested against them), so that Open3D is loaded only
-where nothing else will do: the Poisson rest pose (built in a short-lived process by the
-node), DBSCAN for unorganized clouds and the non-default preprocessing options.
+Open3D does each of them well, but importing it costs a process about 170 MB resident,
+and the registration node needs these three for every camera frame, for as long as it
+runs. Written here to give the same results as Open3D's `voxel_down_sample`,
+`remove_statistical_outlier` and `segment_plane` (same definitions, tested against
+them), so that Open3D is loaded only where nothing else will do: the Poisson rest pose
+(built in a short-lived process by the node), DBSCAN for unorganized clouds and the
+non-default preprocessing options.
 """
 from __future__ import annotations
 
@@ -19,9 +19,8 @@ from scipy.spatial import cKDTree
 def finite_rows(points: np.ndarray) -> np.ndarray:
     """(N,) bool: the rows of points (N, 3) whose three coordinates are finite. The sum of
     the columns is finite exactly then (NaN and inf propagate; only a sum beyond the
-    float's range, coordinates of 1e38 m, would also count as not finite), and is ten times
-    faster than `np.isfinite(points).all(axis=1)`, which reduces along the short axis
-    (1.6 against 15 ms for a 640x480 cloud)."""
+    float's range, coordinates of 1e38 m, would also count as not finite), and is much
+    faster than `np.isfinite(points).all(axis=1)`, which reduces along the short axis."""
     points = np.asarray(points)
     return np.isfinite(points[:, 0] + points[:, 1] + points[:, 2])
 
@@ -56,8 +55,8 @@ def statistical_inliers(points: np.ndarray, neighbours: int, std_ratio: float) -
     points = np.asarray(points, dtype=np.float64)
     if len(points) <= neighbours:
         return np.ones(len(points), dtype=bool)
-    # pykdtree, not scipy's cKDTree: the same distances in less time (6.9 vs 11 ms for 5200
-    # points and 16 neighbours on the one thread the nodes give it), for every camera frame
+    # pykdtree, not scipy's cKDTree: the same distances in less time on the one thread the
+    # nodes give it, and this runs for every camera frame
     distances, _ = KDTree(points).query(points, k=neighbours)
     mean = distances.mean(axis=1)
     threshold = mean.mean() + std_ratio * mean.std(ddof=1)
@@ -70,13 +69,11 @@ def ransac_plane(points: np.ndarray, distance: float, iterations: int, rng: np.r
     indices) with normal . x + d = 0, or None for fewer than 3 points.
 
     `iterations` planes through three random points are scored on `score_points` of the
-    points at most (a random subset), the `rerank` best of them on all points (scoring only
-    on the subset changed the plane, so the segmentation, of some frames of the sample bag:
-    2 fewer joints found); the inliers are the best plane's among all points, and the plane
-    returned is the least-squares fit to them, as Open3D does.
-    Counting the inliers again with the refined plane was measured and not kept: it takes
-    in the subject's feet on the floor (a walk in a room: the subject found in 64-71
-    instead of 82 of 90 frames).
+    points at most (a random subset), the `rerank` best of them on all points (the subset's
+    winner alone can be another plane than the full count's, and so change the
+    segmentation); the inliers are the best plane's among all points, and the plane returned
+    is the least-squares fit to them, as Open3D does. The inliers are not counted again
+    with the refined plane: a floor refitted to them takes in the subject's feet.
     """
     points = np.asarray(points, dtype=np.float64)
     if len(points) < 3:

@@ -48,7 +48,7 @@ def unexplained_clusters(observed: np.ndarray, points: np.ndarray, reach: float,
     if len(far) < min_points:
         return []
     # the spacing only here: most frames with a lost part have too few far observations,
-    # and it is a k-d tree over the whole frame (4 ms for 5 000 points)
+    # and it is a k-d tree over the whole frame
     link = link_spacings * median_spacing(observed)
     pairs = cKDTree(far).query_pairs(link, output_type='ndarray')
     adjacency = sparse.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(far), len(far)))

@@ -11,9 +11,9 @@ E-step (Eq. 3), truncated: p_mi = exp(-|v_i - y'_m|^2 / 2 sigma2) / (sum_m' ... 
     centroids, `core.gmm`), are kept: a Gaussian beyond 3 sigma weighs < 1.1 % of its
     peak, and the dense N x M matrix is never formed (memory O(N k), not O(N M)). The
     neighbour lists are queried again only when a centroid has moved a rest spacing or
-    sigma has grown (`core.gmm.CandidateCache`, as in Alg. 2 and the live fit): 3.4
-    queries in a frame's 7.7 iterations on the human, 13-25 % less time a frame, the
-    error within the registration's own run-to-run spread (bench/README.md).
+    sigma has grown (`core.gmm.CandidateCache`, as in Alg. 2 and the live fit): once EM
+    has found the frame the centroids move by millimetres, and the query is a large part
+    of an iteration.
 
 M-step (Eq. 4): minimise
     E = E_GMM + beta_smooth / 2 E_smooth + beta_small / 2 E_small,   R_j in SO(3),
@@ -43,7 +43,7 @@ and T = t - g. Nodes that share no point and no edge do not appear in each other
 so each colour class of the graph is updated in one vectorised batch with exactly the
 result of updating its nodes one after another.
 
-Choice of blocks (deviation, measured in bench/README.md). One node at a time with
+Choice of blocks (deviation from the paper's scheme). One node at a time with
 beta_smooth = 1e5 is Gauss-Seidel on a very stiff spring system: a translation shared by
 many nodes (the whole forearm moving) travels through the graph by about 1 % per sweep, so
 20 iterations do not converge. The default `m_step='translations_rotations'` therefore
@@ -67,9 +67,9 @@ the paper's scheme (Eq. 5 and 6, node after node, by colour classes).
 
 sigma2 (Eq. 7): sigma2 = sum_mi p_mi |v_i - y'_m|^2 / (3 N_p), with the new y'.
 
-Robust smoothness (deviation, `smoothness='robust'`, the default; measured in
-bench/README.md). The graph is built on the first frame, where a hanging arm touches the
-torso and the legs touch each other, so edges join parts that later move apart. With the
+Robust smoothness (deviation, `smoothness='robust'`, the default). The graph is built on
+the first frame, where a hanging arm touches the torso and the legs touch each other, so
+edges join parts that later move apart. With the
 quadratic E_smooth at beta_smooth = 1e5 a raised arm stays tied to the torso: it lags
 further every frame and is lost. Instead
     E_smooth = sum_e rho(r_e),   rho(r) = r^2 / (1 + r^2 / tau_e^2)   (Geman-McClure),
@@ -475,7 +475,7 @@ class NonRigidRegistration:
         rhs = self._blend.T @ (weights[:, None] * residual_targets) \
             - self._incidence.T @ (stiffness[:, None] * c) + p.beta_small * translations
         # the system is symmetric positive definite: a symmetric fill-reducing ordering
-        # factors it in 0.6 against 1.0 ms (COLAMD, the default) for 370 nodes
+        # factors it faster than COLAMD, spsolve's default
         translations[:] = spsolve(system, rhs, permc_spec='MMD_AT_PLUS_A').reshape(-1, 3)
 
     def _update_rotations(self, estep: GMMStatistics, sigma2: float, contributions: np.ndarray,

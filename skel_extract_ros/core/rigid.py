@@ -15,13 +15,13 @@ def rotations_from_h(H: np.ndarray) -> np.ndarray:
     if H.shape == (3, 3):
         # one matrix (the bone-by-bone updates of Alg. 2 and the live fit call this per
         # bone): LAPACK's gesdd called directly, as np.linalg.svd does (the same U, Vt) but
-        # without its per-call overhead: 3.2 against 8 us
+        # without its per-call overhead
         U, _, Vt, info = _gesdd(H.T)
         if info != 0:
             U, _, Vt = np.linalg.svd(H.T)      # did not converge (NaN, inf): numpy's error or answer
         R = U @ Vt
         # R is orthogonal, det +-1: the sign from the cofactor expansion in Python floats,
-        # a quarter of np.linalg.det's time on one 3 x 3 (called ~60 times a live frame)
+        # cheaper than np.linalg.det on one 3 x 3 (called ~60 times a live frame)
         (a, b, c), (d, e, f), (g, h, i) = R.tolist()
         if a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g) < 0:
             U[:, 2] = -U[:, 2]
@@ -77,7 +77,7 @@ def fit_weighted_segments(rest: np.ndarray, frames: np.ndarray, membership: spar
     frame_centres = (summer @ by_point).reshape(n_segments, F, 3)
     frame_centres = frame_centres.transpose(1, 0, 2) / safe[None, :, None]        # (F, S, 3)
     # H[t, s, i, j] = sum_m w_sm q_mi y_mj^t, then centred: one sparse product per component
-    # i of q (the same sums as over an (M, F, 3, 3) outer product, 2.5x faster for 60 frames)
+    # i of q (the same sums as over an (M, F, 3, 3) outer product, without forming it)
     H = np.stack([(summer.multiply(rest[None, :, i]).tocsr() @ by_point).reshape(n_segments, F, 3)
                   for i in range(3)], axis=2).transpose(1, 0, 2, 3)
     H -= counts[None, :, None, None] * rest_centres[None, :, :, None] * frame_centres[:, :, None, :]

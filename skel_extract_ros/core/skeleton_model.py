@@ -1,4 +1,4 @@
-"""The extracted skeleton: bone tree, joints and LBS model, and its skeleton.json form.
+"""The extracted skeleton: bone tree, joints and LBS model (Eq. 8), and its skeleton.json form.
 
 Joint b is the joint between bone b and its parent bone; the root bone's joint is its
 centre (the paper's root joint). So the joint tree has the bone tree's parents.
@@ -35,7 +35,7 @@ class SkeletonModel:
         return [f'joint_{int(i)}' for i in ids]
 
     def to_json(self, stamps, positions, frame_id: str) -> dict:
-        """The skeleton.json document (DESIGN.md): stamps (F,) s, positions (F, J, 3) m."""
+        """The skeleton.json document (`skeleton_document`): stamps (F,) s, positions (F, J, 3) m."""
         return skeleton_document(self.joint_names, self.parents, self.rest_joints, stamps, positions, frame_id)
 
 

@@ -20,7 +20,8 @@
      change;
    - paper rule 3: two adjacent joints closer than `joint_merge_fraction` of the subject
      size are merged (the short bone between them goes to its parent).
-5. Initial joint locations c_jk minimise E_Joint (Sec. 6) for the fitted transforms:
+5. Initial joint locations c_jk minimise E_Joint (Sec. 6.3, the joint term of Eq. 12a) for
+   the fitted transforms:
    eta |c - c~|^2 + sum_t |(R_j^t - R_k^t) c + T_j^t - T_k^t|^2, c~ the centroid of the
    boundary points between the two bones; a 3 x 3 solve per joint.
 
@@ -40,9 +41,8 @@ relative rotation over the rotation noise produces at that size: scale-free, so 
 merged first, one at a time, until every joint has evidence >= motion_noise_factor. The
 relative rotation is measured through the points rather than as the angle between fitted
 rotations because the turn of a thin part about its own axis barely moves its points and
-is barely determined by them (measured: it gave 180 degree "bends" between the halves of
-rigid forearms). bench/README.md compares this with the earlier rule (a floor of 2 % of the
-subject size on d), and with a null distribution from cutting each cluster in two.
+is barely determined by them (the fitted angle can show a 180 degree "bend" between the
+halves of a rigid forearm).
 
 Deviation (anchor_depth='medial', the default): one depth camera sees only the front of
 each limb, so the boundary centroid c~ lies on the visible surface, about a limb radius in
@@ -50,7 +50,7 @@ front of the joint, and wherever the motion leaves a joint's depth unconstrained
 whose axis points at the camera, a root bone's centre) E_Joint puts the joint there too.
 `medial_anchors` moves each c~ back along its camera ray to the depth of the bone's
 cross-section centre, fitted to the visible half of that cross-section (see there). The
-paper's plain centroid is anchor_depth='surface'; bench/README.md measures both.
+paper's plain centroid is anchor_depth='surface'.
 """
 from __future__ import annotations
 
@@ -186,7 +186,7 @@ def _residuals(rest, registered, rotations, translations) -> np.ndarray:
     """(M, S) sum over frames of |y_m^t - (R_s^t q_m + T_s^t)|^2 (m^2).
 
     Expanded into sums over frames that are matrix products, instead of forming the
-    (F, S, M, 3) predictions (this was three quarters of Step 2):
+    (F, S, M, 3) predictions, which would be most of Step 2's time:
     sum_t |y|^2 + F |q|^2 + sum_t |T_s|^2 - 2 q . sum_t R_s^T y - 2 sum_t y . T_s
     + 2 q . sum_t R_s^T T_s. The terms are O(1 m^2) and the residuals ~1e-4 m^2, far
     above float64 cancellation (~1e-13 m^2).
@@ -268,7 +268,8 @@ def split_evidence(residual: np.ndarray, labels: np.ndarray, parents: np.ndarray
 
 
 def solve_joints(rotations, translations, parents, anchors, eta: float) -> np.ndarray:
-    """(B, 3) rest-frame joints minimising E_Joint for each bone and its parent.
+    """(B, 3) rest-frame joints minimising E_Joint (Eq. 12a's joint term) for each bone and
+    its parent, with the bone transforms fixed: setting its gradient in c to zero gives
 
     (eta I + sum_t D_t^T D_t) c = eta c~ - sum_t D_t^T (T_p - T_b), D_t = R_p^t - R_b^t.
     Root rows return their anchor.
