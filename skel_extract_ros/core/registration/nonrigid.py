@@ -1,0 +1,229 @@
+"""NonRigidRegistration: the EM loop of Alg. 1 over the graph's terms and the M-step blocks,
+frame by frame, with recapture of lost parts and unseen parts carried along."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..deformation_graph import DeformationGraph
+from ..gmm import CandidateCache, GMMStatistics, gmm_posteriors
+from ..point_sets import finite_rows, median_spacing
+from ..recapture import find_recaptures, lost_parts
+from ..rigid import fit_weighted_segments, weighted_rigid_fit
+from .graph_terms import GraphTerms
+from .m_step import GraphMStep
+from .params import STATUS_DIVERGED, STATUS_EMPTY, STATUS_OK, FrameResult, RegistrationParams
+from .visibility import ObservedView
+
+
+@dataclass
+class _EMState:
+    """Node transforms, registered points (M, 3), sigma2 and the last E-step of one EM run."""
+
+    rotations: np.ndarray
+    translations: np.ndarray
+    points: np.ndarray
+    sigma2: float
+    estep: GMMStatistics | None
+    iterations: int
+    energies: list
+    recaptured: int = 0
+
+
+class NonRigidRegistration(GraphTerms, GraphMStep):
+    """Tracks a rest point set through a sequence, frame by frame (Alg. 1).
+
+    >>> registration = NonRigidRegistration(rest_points, RegistrationParams())
+    >>> result = registration.register_frame(observed_points)   # (N, 3) -> FrameResult
+
+    State (node rotations and translations) carries over from frame to frame; a frame that
+    is empty or diverges leaves it unchanged.
+    """
+
+    def __init__(self, rest_points: np.ndarray, params: RegistrationParams | None = None):
+        self.params = params or RegistrationParams()
+        rest_points = np.asarray(rest_points, dtype=np.float64)
+        if rest_points.ndim != 2 or rest_points.shape[1] != 3 or len(rest_points) < 10:
+            raise ValueError(f'rest points must be (M >= 10, 3), got {rest_points.shape}')
+        # the rest points' spacing: a centroid that moved less has passed no other (CandidateCache)
+        self.point_spacing = median_spacing(rest_points)
+        spacing = self.params.node_spacing or self.params.node_spacing_factor * self.point_spacing
+        self.node_spacing = spacing
+        self.graph = DeformationGraph.build(rest_points, spacing, self.params.n_influence)
+        n_nodes = self.graph.n_nodes
+        self.rotations = np.tile(np.eye(3), (n_nodes, 1, 1))
+        self.translations = np.zeros((n_nodes, 3))
+        self.points = rest_points.copy()
+        self._prepare()
+
+    @property
+    def rest_points(self) -> np.ndarray:
+        return self.graph.rest_points
+
+    def reset(self) -> None:
+        """Back to the rest pose (identity node transforms)."""
+        self.rotations[:] = np.eye(3)
+        self.translations[:] = 0.0
+        self.points = self.rest_points.copy()
+
+    # ----------------------------------------------------------------------------------
+    def _e_step(self, observed: np.ndarray, points: np.ndarray, sigma2: float,
+                view: 'ObservedView | None' = None, cache: CandidateCache | None = None) -> GMMStatistics:
+        """Eq. (3) over the centroids the camera can see (all without a view); without a
+        view, over the candidates of `cache` (the frame's CandidateCache)."""
+        p = self.params
+        if view is None:
+            if cache is not None:
+                return cache.posteriors(points, sigma2, p.omega, p.truncation_sigmas)
+            return gmm_posteriors(observed, points, sigma2, p.omega, p.e_step_neighbours, p.truncation_sigmas)
+        visible = view.visible(points, p.truncation_sigmas * np.sqrt(sigma2))
+        self.last_visible_ = visible
+        stats = gmm_posteriors(observed, points[visible], sigma2, p.omega, p.e_step_neighbours,
+                               p.truncation_sigmas)
+        P1 = np.zeros(len(points))
+        Px = np.zeros((len(points), 3))
+        P1[visible], Px[visible] = stats.P1, stats.Px
+        return GMMStatistics(P1, Px, stats.Np, stats.nll, stats.weighted_sq)
+
+    def _node_support(self, estep: GMMStatistics) -> np.ndarray:
+        """(J,) posterior mass per carried point that each node's points received (0: no data)."""
+        return (self._blend.T @ estep.P1) / self._node_mass
+
+    def _run_em(self, observed: np.ndarray, view: 'ObservedView | None', rotations: np.ndarray,
+                translations: np.ndarray, iterations_done: int = 0) -> '_EMState':
+        """EM (Alg. 1) from the node transforms given, to convergence or max_iterations."""
+        p = self.params
+        rotated = self._rotated_offsets(rotations)
+        contributions = self._contributions(rotations, translations, rotated)
+        points = contributions.sum(axis=1)
+        sigma2 = p.initial_sigma2
+        energies = []
+        iterations = 0
+        estep = None
+        # the visible subset changes between iterations: its E-step queries every time
+        cache = CandidateCache(observed, self.point_spacing, p.e_step_neighbours) if view is None else None
+        for iterations in range(1, p.max_iterations + 1):
+            estep = self._e_step(observed, points, sigma2, view, cache)
+            # the objective and the IRLS weights below are both at these transforms
+            residuals = self.edge_residuals(rotations, translations)
+            energies.append(estep.nll + self.smoothness_penalty(rotations, translations, sigma2, residuals))
+            if len(energies) > 1 and abs(energies[-2] - energies[-1]) <= p.tolerance * abs(energies[-1]):
+                break
+            if estep.Np <= 1e-9:
+                break
+            if p.m_step == 'translations_rotations':
+                # IRLS: the robust edge weights are fixed at this iteration's transforms
+                stiffness = self.edge_stiffness(rotations, translations, sigma2,
+                                                None if view is None else self.last_visible_, residuals)
+                self._solve_translations(estep, sigma2, rotations, translations, rotated, stiffness)
+                contributions = self._contributions(rotations, translations, rotated)
+                self._update_rotations(estep, sigma2, contributions, rotations, translations, rotated, stiffness)
+                rotated = self._rotated_offsets(rotations)
+                contributions = self._contributions(rotations, translations, rotated)
+            else:
+                self._update_nodes(estep, sigma2, contributions, rotations, translations)
+            points = contributions.sum(axis=1)
+            # Eq. (7): sum_mi p_mi |v_i - y'_m|^2 / (3 N_p)
+            sigma2 = max(estep.squared_residual(points) / (3.0 * estep.Np), p.min_sigma2)
+            if sigma2 > p.max_sigma2:
+                break
+        return _EMState(rotations, translations, points, sigma2, estep, iterations_done + iterations, energies)
+
+    def _recapture(self, observed: np.ndarray, view: 'ObservedView | None', state: '_EMState') -> '_EMState':
+        """Turn parts EM left behind onto the observations nothing explains (core.recapture),
+        re-run EM from there, and keep that if it explains more of the frame."""
+        p = self.params
+        graph = self.graph
+        if not np.isfinite(state.sigma2):
+            return state
+        support = self._node_support(state.estep)
+        reach = p.truncation_sigmas * np.sqrt(state.sigma2)
+        main_node = graph.point_nodes[np.arange(len(graph.rest_points)), np.argmax(graph.point_weights, axis=1)]
+        node_positions = graph.node_positions + state.translations
+        found = find_recaptures(observed, state.points, node_positions, support, graph.edges, main_node, reach)
+        if not found:
+            return state
+        rotations, translations = state.rotations.copy(), state.translations.copy()
+        for capture in found:
+            nodes = capture.nodes
+            rotations[nodes] = np.einsum('ij,njk->nik', capture.rotation, rotations[nodes])
+            moved = node_positions[nodes] @ capture.rotation.T + capture.shift
+            translations[nodes] = moved - graph.node_positions[nodes]
+        retried = self._run_em(observed, view, rotations, translations, state.iterations)
+        if retried.estep is None or not retried.estep.Np > state.estep.Np:
+            return state
+        retried.energies = state.energies + retried.energies
+        retried.recaptured = len(found)
+        return retried
+
+    def _carry_unseen_parts(self, state: '_EMState', start: tuple) -> None:
+        """Parts without data this frame (out of sight, or lost and not recaptured) move
+        rigidly with the tracked nodes they hang on, from where EM started them (the
+        previous frame's state, or the predicted pose: `start` = (rotations, translations)),
+        in place.
+
+        With the robust smoothness such a part is torn off and, having nothing to follow,
+        would stay where it was while the body walks on; the paper's stiff graph dragged it
+        along. This keeps the drag, without letting the part pull on the tracked body."""
+        graph = self.graph
+        support = self._node_support(state.estep)
+        start_rotations, start_translations = start
+        before = graph.node_positions + start_translations
+        after = graph.node_positions + state.translations
+        for nodes, anchors in lost_parts(support, graph.edges):     # a few parts, not points
+            if len(anchors) >= 3:
+                rotation, shift = weighted_rigid_fit(before[anchors], after[anchors])
+            else:
+                rotation, shift = np.eye(3), (after[anchors] - before[anchors]).mean(axis=0)
+            state.rotations[nodes] = np.einsum('ij,njk->nik', rotation, start_rotations[nodes])
+            state.translations[nodes] = before[nodes] @ rotation.T + shift - graph.node_positions[nodes]
+        state.points = self._contributions(state.rotations, state.translations).sum(axis=1)
+
+    def transforms_onto(self, points: np.ndarray) -> tuple:
+        """Node transforms (rotations (J, 3, 3), translations (J, 3)) that carry the rest
+        points onto `points` (M, 3) m, e.g. a pose predicted by a tracker: each node's
+        weighted rigid fit of the points it carries (its blend weights). Exact for a rigid
+        motion of the whole set; an approximation of a non-rigid one that EM refines."""
+        points = np.asarray(points, dtype=np.float64)
+        if points.shape != self.rest_points.shape or not np.isfinite(points).all():
+            raise ValueError(f'start points must be finite ({len(self.rest_points)}, 3), got {points.shape}')
+        rotations, centres = fit_weighted_segments(self.rest_points, points[None], self._blend.T)
+        rotations, centres = rotations[0], centres[0]               # y = R q + c
+        g = self.graph.node_positions
+        # the graph's form: y = R (q - g) + g + T, so T = c + R g - g
+        return rotations, centres + np.einsum('jik,jk->ji', rotations, g) - g
+
+    # ----------------------------------------------------------------------------------
+    def register_frame(self, observed: np.ndarray, start_points: np.ndarray | None = None) -> FrameResult:
+        """Register one frame's observed points (N, 3), metres: EM from the previous frame's
+        state, or, with start_points (M, 3) (a predicted pose of the registered points,
+        e.g. the live skeleton fit of a newer frame than the last registered one), from the
+        node transforms that carry the rest points onto it (`transforms_onto`). A frame
+        that is empty or diverges leaves the state as it was."""
+        p = self.params
+        observed = np.asarray(observed, dtype=np.float64)
+        if observed.ndim != 2 or observed.shape[1] != 3:
+            raise ValueError(f'observed points must be (N, 3), got {observed.shape}')
+        observed = np.ascontiguousarray(observed[finite_rows(observed)])
+        if len(observed) < p.min_points:
+            return FrameResult(self.points.copy(), STATUS_EMPTY, float('nan'), 0, 0.0)
+        start = (self.rotations.copy(), self.translations.copy()) if start_points is None \
+            else self.transforms_onto(start_points)
+
+        view = ObservedView(observed) if p.visibility else None
+        state = self._run_em(observed, view, start[0].copy(), start[1].copy())
+        if p.recapture and state.estep is not None:
+            state = self._recapture(observed, view, state)
+        if p.smoothness == 'robust' and state.estep is not None and np.isfinite(state.sigma2):
+            self._carry_unseen_parts(state, start)
+        rotations, translations, points, sigma2 = state.rotations, state.translations, state.points, state.sigma2
+        estep, iterations, energies = state.estep, state.iterations, state.energies
+        matched_fraction = estep.Np / len(observed) if estep is not None else 0.0
+        if not np.isfinite(sigma2) or sigma2 > p.max_sigma2 or matched_fraction < p.min_matched_fraction \
+                or not np.isfinite(points).all():
+            return FrameResult(self.points.copy(), STATUS_DIVERGED, float(sigma2), iterations,
+                               float(matched_fraction), energies)
+        self.rotations, self.translations, self.points = rotations, translations, points
+        return FrameResult(points.copy(), STATUS_OK, float(sigma2), iterations, float(matched_fraction), energies,
+                           state.recaptured)
