@@ -229,7 +229,7 @@ def test_back_projection_is_the_pinhole_model():
 def test_the_fast_opening_is_scipy_s_binary_opening_up_to_the_image_border():
     from scipy import ndimage
 
-    from skel_extract_ros.core.segmentation import _opening3x3
+    from skel_extract_ros.core.segmentation.organized import _opening3x3
     rng = np.random.default_rng(4)
     for density in (0.3, 0.7, 0.95):
         mask = rng.uniform(size=(60, 80)) < density

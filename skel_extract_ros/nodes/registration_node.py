@@ -24,7 +24,7 @@ Services    ~/reset           std_srvs/Trigger: forget the rest pose, build a ne
 Two stages, each on its own Worker (nodes/worker.py), so the subject reaches the live path
 at camera rate whatever registration costs:
 - the *camera stage* (latest cloud only) decodes every cloud, segments it
-  (core/segmentation.py: only the subject, the connected region that moves, is kept),
+  (core/segmentation/: only the subject, the connected region that moves, is kept),
   preprocesses it and publishes it on filtered_points at once: the joint node fits the
   skeleton to it;
 - the *registration stage* registers the subject clouds it is given (Alg. 1). While the
