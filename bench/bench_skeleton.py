@@ -29,8 +29,8 @@ sys.path.insert(0, str(REPO))
 
 from skel_extract_ros.core.joints import JointEstimation  # noqa: E402
 from skel_extract_ros.core.pipeline import SkeletonPipeline  # noqa: E402
-from skel_extract_ros.core.structure import (StructureParams, extract_structure, joint_trajectories,  # noqa: E402
-                                             solve_joints)
+from skel_extract_ros.core.joint_centres import joint_trajectories, solve_joints  # noqa: E402
+from skel_extract_ros.core.structure import StructureParams, extract_structure  # noqa: E402
 from skel_extract_ros.evaluation import GroundTruth, PredictedSkeleton, evaluate_joints  # noqa: E402
 from skel_extract_ros.sim import generate_sequence  # noqa: E402
 

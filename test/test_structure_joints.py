@@ -9,9 +9,9 @@ from scipy.spatial.transform import Rotation
 from skel_extract_ros.core.articulated import BoneBlocks
 from skel_extract_ros.core.joints import JointEstimation, JointParams, simplex_least_squares
 from skel_extract_ros.core.rigid import fit_rigid_segments
+from skel_extract_ros.core.joint_centres import boundary_centroids, medial_anchors, solve_joints
 from skel_extract_ros.core.structure import (StructureError, StructureParams, _neighbour_graph, _residuals,
-                                             boundary_centroids, extract_structure, medial_anchors,
-                                             solve_joints, split_evidence)
+                                             extract_structure, split_evidence)
 from two_bone import two_bone_sequence
 
 

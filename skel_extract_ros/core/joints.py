@@ -37,7 +37,8 @@ import numpy as np
 from .articulated import BoneBlocks, blend, dense_weights, influenced_positions
 from .gmm import CandidateCache
 from .point_sets import median_spacing
-from .structure import SkeletalStructure, joint_trajectories, solve_joints
+from .joint_centres import joint_trajectories, solve_joints
+from .structure import SkeletalStructure
 
 
 @dataclass

@@ -52,7 +52,7 @@ from .joints import JointParams
 from .point_sets import finite_rows, median_spacing
 from .rigid import fit_rigid_segments, weighted_rigid_fit
 from .skeleton_model import SkeletonModel
-from .structure import joint_trajectories
+from .joint_centres import joint_trajectories
 
 # a bone whose points get less than this share of the frame's average posterior mass has
 # lost its data (core.recapture uses the same level for the registration's graph nodes)

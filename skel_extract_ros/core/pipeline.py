@@ -23,7 +23,8 @@ from .segmentation import SegmentationParams
 from .sequence import SequenceRegistration
 from .skeleton_model import SkeletonModel
 from .rigid import fit_rigid_segments
-from .structure import SkeletalStructure, StructureParams, joint_trajectories
+from .joint_centres import joint_trajectories
+from .structure import SkeletalStructure, StructureParams
 
 
 @dataclass

@@ -44,13 +44,7 @@ rotations because the turn of a thin part about its own axis barely moves its po
 is barely determined by them (the fitted angle can show a 180 degree "bend" between the
 halves of a rigid forearm).
 
-Deviation (anchor_depth='medial', the default): one depth camera sees only the front of
-each limb, so the boundary centroid c~ lies on the visible surface, about a limb radius in
-front of the joint, and wherever the motion leaves a joint's depth unconstrained (a hinge
-whose axis points at the camera, a root bone's centre) E_Joint puts the joint there too.
-`medial_anchors` moves each c~ back along its camera ray to the depth of the bone's
-cross-section centre, fitted to the visible half of that cross-section (see there). The
-paper's plain centroid is anchor_depth='surface'.
+Joint locations and anchors: core/joint_centres.py.
 """
 from __future__ import annotations
 
@@ -62,6 +56,7 @@ from scipy.cluster.vq import kmeans2
 from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
 from scipy.spatial import cKDTree
 
+from .joint_centres import boundary_centroids, joint_trajectories, medial_anchors, solve_joints
 from .point_sets import median_spacing
 from .rigid import fit_rigid_segments, segment_matrix
 
@@ -160,15 +155,6 @@ class SkeletalStructure:
         return joint_trajectories(self.rotations, self.translations, self.joints, self.parents)
 
 
-def joint_trajectories(rotations, translations, joints, parents) -> np.ndarray:
-    """(F, B, 3) per-frame joints: each joint (B, 3) carried by the mean of its bone's and its
-    parent bone's transforms (the root joint by the root bone)."""
-    own = np.einsum('fbij,bj->fbi', rotations, joints) + translations
-    parent_of = np.where(parents < 0, np.arange(len(parents)), parents)
-    by_parent = np.einsum('fbij,bj->fbi', rotations[:, parent_of], joints) + translations[:, parent_of]
-    return 0.5 * (own + by_parent)
-
-
 def _neighbour_graph(rest: np.ndarray, radius: float) -> sparse.csr_matrix:
     """(M, M) symmetric 0/1 adjacency of points within `radius`, with the diagonal."""
     pairs = cKDTree(rest).query_pairs(radius, output_type='ndarray')
@@ -265,98 +251,6 @@ def split_evidence(residual: np.ndarray, labels: np.ndarray, parents: np.ndarray
     own = residual[np.arange(len(labels)), labels]
     noise = max(np.sqrt(float(np.median(own)) / n_frames), 1e-6 * size)
     return _own_motion(residual, labels, parents, n_frames) / noise
-
-
-def solve_joints(rotations, translations, parents, anchors, eta: float) -> np.ndarray:
-    """(B, 3) rest-frame joints minimising E_Joint (Eq. 12a's joint term) for each bone and
-    its parent, with the bone transforms fixed: setting its gradient in c to zero gives
-
-    (eta I + sum_t D_t^T D_t) c = eta c~ - sum_t D_t^T (T_p - T_b), D_t = R_p^t - R_b^t.
-    Root rows return their anchor.
-    """
-    joints = anchors.copy()
-    child = np.flatnonzero(parents >= 0)
-    if len(child) == 0:
-        return joints
-    parent = parents[child]
-    D = rotations[:, parent] - rotations[:, child]                               # (F, E, 3, 3)
-    dT = translations[:, parent] - translations[:, child]                        # (F, E, 3)
-    A = eta * np.eye(3) + np.einsum('feji,fejk->eik', D, D)
-    b = eta * anchors[child] - np.einsum('feji,fej->ei', D, dT)
-    joints[child] = np.linalg.solve(A, b[..., None])[..., 0]
-    return joints
-
-
-def boundary_centroids(labels, parents, adjacency, rest) -> np.ndarray:
-    """(B, 3) centroid of the points of bone b or of its parent that touch the other one
-    (the root gets its own centre)."""
-    B = len(parents)
-    summer = segment_matrix(labels, B)
-    touches = (adjacency @ summer.T).tocsr()                                    # (M, B) neighbours per bone
-    centres = (summer @ rest) / np.maximum(np.asarray(summer.sum(axis=1)).ravel(), 1)[:, None]
-    result = centres.copy()
-    for b in np.flatnonzero(parents >= 0):  # loop over bones, not points
-        p = parents[b]
-        on_boundary = ((labels == b) & (touches[:, p].toarray().ravel() > 0)) | \
-                      ((labels == p) & (touches[:, b].toarray().ravel() > 0))
-        if on_boundary.any():
-            result[b] = rest[on_boundary].mean(axis=0)
-        else:
-            result[b] = 0.5 * (centres[b] + centres[p])
-    return result
-
-
-def medial_anchors(labels, parents, rest, anchors, camera_location, min_section_points: int = 60) -> np.ndarray:
-    """(B, 3) the anchors (B, 3) moved back along their camera rays to the depth of the
-    centre of their bone's cross-section (for the root: of the root bone itself).
-
-    The cross-section is the slab of the bone's rest points (M, 3) across its main axis
-    (first principal direction) around the anchor: 10 % of the bone's length, at least
-    `min_section_points` points. One camera samples only its front half: across the bone
-    (perpendicular to the axis and the ray) the section spans [middle - a, middle + a]
-    (2nd-98th percentile), and an elliptic section with its depth axis along the ray gives
-    depth(s) = centre - b sqrt(1 - (s - middle)^2 / a^2) for every visible point; centre and
-    half-depth b come from one linear least-squares fit, so a flat section (a torso) is not
-    taken for a round one. Anchors only move away from the camera and by at most a. Bones
-    seen end-on (axis along the ray) and sections not clearly in front of the camera keep
-    their anchor.
-    """
-    camera = np.asarray(camera_location, dtype=np.float64)
-    result = anchors.copy()
-    for bone in range(len(parents)):  # loop over bones (a few dozen), vectorised over points
-        points = rest[labels == bone]
-        if len(points) < 10:
-            continue
-        anchor = anchors[bone]
-        ray = anchor - camera
-        ray /= max(np.linalg.norm(ray), 1e-12)
-        axis = np.linalg.svd(points - points.mean(axis=0), full_matrices=False)[2][0]
-        axis = axis - ray * (axis @ ray)
-        if np.linalg.norm(axis) < 0.3:   # bone points at the camera: its section is not seen
-            continue
-        axis /= np.linalg.norm(axis)
-        lateral = np.cross(ray, axis)
-        along = np.abs((points - anchor) @ axis)
-        kth = min(len(along), min_section_points) - 1
-        half_slab = max(0.1 * np.ptp(points @ axis), np.partition(along, kth)[kth])
-        section = points[along <= half_slab]
-        across = (section - anchor) @ lateral
-        depth = (section - camera) @ ray
-        low, high = np.percentile(across, [2.0, 98.0])
-        half_width, middle = 0.5 * (high - low), 0.5 * (high + low)
-        # a section reaching to within its own half-width of the camera (or behind it): the
-        # cloud is not in the camera's frame or camera_location is wrong; the front-half
-        # model does not hold
-        if half_width <= 0 or len(section) < 5 or depth.min() <= half_width:
-            continue
-        # depth = centre_depth - half_depth * sqrt(1 - (across - middle)^2 / half_width^2):
-        # linear in (centre_depth, half_depth), exact for a round or elliptic section
-        profile = np.sqrt(np.clip(1.0 - ((across - middle) / half_width) ** 2, 0.0, 1.0))
-        design = np.column_stack([np.ones_like(profile), -profile])
-        centre_depth = float(np.linalg.lstsq(design, depth, rcond=None)[0][0])
-        shift = np.clip(centre_depth - (anchor - camera) @ ray, 0.0, half_width)
-        result[bone] = anchor + shift * ray
-    return result
 
 
 def _anchors(labels, parents, adjacency, rest, params: 'StructureParams') -> np.ndarray:
