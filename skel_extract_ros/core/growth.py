@@ -32,6 +32,7 @@ from scipy.optimize import linear_sum_assignment
 
 from .joints import JointEstimate, JointEstimation, JointParams
 from .rigid import fit_rigid_segments
+from .skeleton_model import SkeletonModel
 from .structure import SkeletalStructure, StructureParams, extract_structure
 
 # poses are compared on this many rest points (spread over the subject): enough to see a
@@ -44,7 +45,8 @@ class GrowthUpdate:
     """What one update did: structure (on the key frames), estimate (Alg. 2 on them, None
     without observed points), joint_ids (B,) stable ids, key_stamps (K,) the key frames'
     stamps, changed: whether the skeleton differs from the previous update's, changes:
-    {'added': [names], 'removed': [names], 'reparented': [names], 'moved': [names]}."""
+    {'added': [names], 'removed': [names], 'reparented': [names], 'moved': [names]};
+    model: the learned skeleton (None without Alg. 2)."""
 
     structure: SkeletalStructure
     estimate: JointEstimate | None
@@ -52,6 +54,7 @@ class GrowthUpdate:
     key_stamps: np.ndarray
     changed: bool
     changes: dict = field(default_factory=dict)
+    model: SkeletonModel | None = None
 
     @property
     def joint_names(self) -> list:
@@ -176,7 +179,8 @@ class SkeletonGrowth:
         self.known_positions[ids] = joints
         self.known_members[ids] = members
         changed = any(changes.values()) or self.last is None
-        self.last = GrowthUpdate(structure, estimate, ids, self.key_stamps.copy(), changed, changes)
+        model = None if estimate is None else estimate.model(self.rest, structure.labels, ids)
+        self.last = GrowthUpdate(structure, estimate, ids, self.key_stamps.copy(), changed, changes, model)
         return self.last
 
     # ------------------------------------------------------------------------------------

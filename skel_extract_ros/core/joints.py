@@ -38,6 +38,7 @@ from .articulated import BoneBlocks, blend, dense_weights, influenced_positions
 from .gmm import CandidateCache
 from .point_sets import median_spacing
 from .joint_centres import joint_trajectories, solve_joints
+from .skeleton_model import SkeletonModel
 from .structure import SkeletalStructure
 
 
@@ -92,6 +93,11 @@ class JointEstimate:
     def dense_weights(self) -> np.ndarray:
         """(M, B) weight matrix W."""
         return dense_weights(self.influences, self.weights, len(self.parents))
+
+    def model(self, rest: np.ndarray, labels: np.ndarray, joint_ids: np.ndarray | None = None) -> SkeletonModel:
+        """The learned skeleton: these joints and LBS weights on rest (M, 3) with Step 2's
+        labels (M,), the joints named by joint_ids (B,) (None: 0..B-1)."""
+        return SkeletonModel(rest, labels, self.parents, self.joints, self.influences, self.weights, joint_ids)
 
 
 _SUPPORTS = {k: [s for r in range(1, k + 1) for s in itertools.combinations(range(k), r)] for k in range(1, 5)}

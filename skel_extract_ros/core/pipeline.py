@@ -87,9 +87,7 @@ class SkeletonPipeline:
         update = growth.update(frames, window, observed)       # frame indices serve as stamps
         seconds['structure'] = growth.seconds_['structure']
         seconds['joints'] = growth.seconds_['joints']
-        structure, estimate = update.structure, update.estimate
-        model = SkeletonModel(rest, structure.labels, estimate.parents, estimate.joints,
-                              estimate.influences, estimate.weights, update.joint_ids)
+        structure, estimate, model = update.structure, update.estimate, update.model
         key = np.searchsorted(frames, update.key_stamps)             # key frames among `frames`
         # Step 2: per-bone rigid fits on every frame; Step 3: Alg. 2 on the key frames, the
         # learned model fitted to the others
