@@ -11,6 +11,7 @@ from pathlib import Path
 
 import yaml
 
+from .core.growth import GrowthSchedule
 from .core.joints import JointParams
 from .core.preprocess import PreprocessParams
 from .core.registration import RegistrationParams
@@ -82,7 +83,8 @@ NODE_ONLY = {'registration_node': {'queue_size': 1, 'learning_queue_size': 60, '
                                    'input_reliability': 'best_effort', 'input': 'cloud',
                                    'registration_niceness': 10, 'registration_sched_idle': True,
                                    'live_start': True},
-             'accumulator_node': {'window_size': 60, 'sliding': False, 'stride': 30},
+             # the growth schedule's (core.growth.GrowthSchedule: `run` follows it too)
+             'accumulator_node': {f.name: f.default for f in dataclasses.fields(GrowthSchedule)},
              'joint_estimation_node': {'buffer_size': 300, 'live_frames': 'camera', 'live_iterations': 3,
                                        'live_sweeps': 2, 'provisional_skeleton': True,
                                        'estimation_niceness': 5, 'joint_diameter': 0.04}}
@@ -110,6 +112,11 @@ def structure_params_from_dict(values: dict, where: str = 'accumulator_node') ->
     return _build(StructureParams, _method_values(values, 'accumulator_node'), where)
 
 
+def schedule_from_dict(values: dict, where: str = 'accumulator_node') -> GrowthSchedule:
+    """GrowthSchedule from the accumulator node's parameters (its window keys)."""
+    return _build(GrowthSchedule, {k: v for k, v in values.items() if k in NODE_ONLY['accumulator_node']}, where)
+
+
 def joint_params_from_dict(values: dict, where: str = 'joint_estimation_node') -> JointParams:
     return _build(JointParams, _method_values(values, 'joint_estimation_node'), where)
 
@@ -121,6 +128,7 @@ def pipeline_params(nodes: dict) -> dict:
     return {'registration': registration, 'rest_pose': rest_pose, 'preprocess': preprocess,
             'segmentation': segmentation,
             'structure': structure_params_from_dict(nodes.get('accumulator_node', {})),
+            'schedule': schedule_from_dict(nodes.get('accumulator_node', {})),
             'joints': joint_params_from_dict(nodes.get('joint_estimation_node', {}))}
 
 

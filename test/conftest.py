@@ -1,4 +1,5 @@
 """Shared fixtures: the bundled sample bag, its `skel-extract run` output, small simulated sequences."""
+import os
 import shutil
 import subprocess
 import sys
@@ -10,6 +11,9 @@ from skel_extract_ros.sim import NoiseModel, generate_sequence
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SAMPLE_BAG = REPO_ROOT / 'bags' / 'sample_wave'
+# real data the tests that need it read (and skip without): SKEL_SHARED_DATA, else the
+# shared data directory beside the checkout
+SHARED_DATA = Path(os.environ.get('SKEL_SHARED_DATA', REPO_ROOT.parent / 'shared' / 'data'))
 
 
 @pytest.fixture(scope='session')

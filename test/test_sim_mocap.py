@@ -1,6 +1,5 @@
 """Real motion in the simulator: the BVH reader, the body put on a skeleton, the choice of
 window, the scenes and late entry."""
-import os
 from pathlib import Path
 
 import numpy as np
@@ -11,7 +10,9 @@ from skel_extract_ros.sim.bvh import BvhError, load_bvh
 from skel_extract_ros.sim.mocap_body import body_part, limb_motion, mocap_body, most_active_start
 from skel_extract_ros.sim.sources import simulate_mocap
 
-MOCAP = Path(os.environ.get('SKEL_SHARED_DATA', Path(__file__).resolve().parents[2] / 'shared' / 'data')) / 'mocap'
+from conftest import SHARED_DATA
+
+MOCAP = SHARED_DATA / 'mocap'
 CLIPS = sorted(MOCAP.glob('*.bvh'))
 needs_mocap = pytest.mark.skipif(not CLIPS, reason=f'no BVH clips in {MOCAP}')
 

@@ -41,6 +41,30 @@ POSE_SAMPLES = 256
 
 
 @dataclass
+class GrowthSchedule:
+    """When the skeleton is learned from the frames as they come (the accumulator node and
+    `skel-extract run` alike): once `window_size` registered frames are in, on them; with
+    `sliding`, again every `stride` frames after, on the last `window_size` frames (which
+    compete for the key frames). A window that shows no articulation is retried on the
+    next `window_size` frames (without sliding) or at the next stride."""
+
+    window_size: int = 60
+    sliding: bool = False
+    stride: int = 30
+
+    def __post_init__(self):
+        if self.window_size < 2 or self.stride < 1:
+            raise ValueError(f'window_size must be >= 2 and stride >= 1, got {self.window_size} and {self.stride}')
+
+    def due(self, since_extraction: int, extracted_once: bool) -> bool:
+        """Whether to learn now, `since_extraction` frames after the last extraction (or
+        since the start), `extracted_once` telling whether one has run."""
+        if not extracted_once:
+            return since_extraction >= self.window_size
+        return self.sliding and since_extraction >= self.stride
+
+
+@dataclass
 class GrowthUpdate:
     """What one update did: structure (on the key frames), estimate (Alg. 2 on them, None
     without observed points), joint_ids (B,) stable ids, key_stamps (K,) the key frames'

@@ -13,7 +13,7 @@ from typing import Callable, Iterable
 
 import numpy as np
 
-from .growth import SkeletonGrowth
+from .growth import GrowthSchedule, SkeletonGrowth
 from .joints import JointEstimate, JointParams
 from .live import LiveJointTracker
 from .preprocess import PreprocessParams
@@ -24,7 +24,7 @@ from .sequence import SequenceRegistration
 from .skeleton_model import SkeletonModel
 from .rigid import fit_rigid_segments
 from .joint_centres import joint_trajectories
-from .structure import SkeletalStructure, StructureParams
+from .structure import SkeletalStructure, StructureError, StructureParams
 
 
 @dataclass
@@ -52,54 +52,120 @@ class SkeletonPipeline:
 
     def __init__(self, registration: RegistrationParams | None = None, rest_pose: RestPoseParams | None = None,
                  preprocess: PreprocessParams | None = None, structure: StructureParams | None = None,
-                 joints: JointParams | None = None, segmentation: SegmentationParams | None = None):
+                 joints: JointParams | None = None, segmentation: SegmentationParams | None = None,
+                 schedule: GrowthSchedule | None = None):
         self.registration = SequenceRegistration(registration, rest_pose, preprocess, keep_observed=True,
                                                  segmentation_params=segmentation)
         self.structure_params = structure or StructureParams()
         self.joint_params = joints or JointParams()
+        self.schedule = schedule or GrowthSchedule()
 
     def register(self, frames: Iterable[np.ndarray], on_frame: Callable[[int, str], None] | None = None):
         """Step 0-1 only: (F, M, 3) registered points (see SequenceRegistration)."""
         return self.registration.register(frames, on_frame)
 
     def extract(self, registered: np.ndarray) -> PipelineResult:
-        """Steps 2 and 3 on the frames `register` produced (raises StructureError).
+        """Steps 2 and 3 on the frames `register` produced, learned as the nodes learn them
+        from a stream (raises StructureError when no window shows articulation).
 
-        The skeleton is learned on the key frames (core.growth: the most different poses,
-        at most structure max_key_frames of them; every frame of a shorter sequence), so a
-        long recording in which the limbs move at different times gives one skeleton with
-        all of them. Key frames get Alg. 2's joints; the other frames the learned model
-        fitted to their registered points (core.live), Step 2 positions from per-bone rigid
-        fits."""
+        The registered frames (status ok, as the nodes publish them) come in order; the
+        skeleton is learned when the growth schedule says (core.growth.GrowthSchedule: on
+        the first `window_size` frames, with `sliding` again every `stride` frames; a
+        sequence shorter than the window is learned on all its frames at the end), each
+        time on the key frames seen so far (core.growth). A learned skeleton gives Alg. 2's
+        joints to its window's frames that have none yet and the fit of the learned model
+        (core.live) to every frame after, as the joint node does for a lossless replay. A
+        frame a skeleton with other joints answered gets the final skeleton's fit. Step 2
+        positions: per-bone rigid fits of every frame."""
         reg = self.registration
-        statuses = reg.statuses_
         # only frames the registration fitted: empty and diverged frames repeat the last
         # good pose, which would weigh that pose twice (the nodes publish only these too)
-        frames = np.flatnonzero(statuses == STATUS_OK)
+        frames = np.flatnonzero(reg.statuses_ == STATUS_OK)
         window = registered[frames].astype(np.float64)
         rest = reg.rest_pose_.points
-        seconds = {'segmentation': reg.times_.segmentation, 'preprocess': reg.times_.preprocess,
-                   'rest_pose': reg.times_.rest_pose,
-                   'registration': reg.times_.registration}
         observed = [reg.observed_[i] for i in frames]
-        growth = SkeletonGrowth(rest, self.structure_params, self.joint_params)
+        seconds = {'segmentation': reg.times_.segmentation, 'preprocess': reg.times_.preprocess,
+                   'rest_pose': reg.times_.rest_pose, 'registration': reg.times_.registration,
+                   'structure': 0.0, 'joints': 0.0}
         started = time.perf_counter()
-        update = growth.update(frames, window, observed)       # frame indices serve as stamps
-        seconds['structure'] = growth.seconds_['structure']
-        seconds['joints'] = growth.seconds_['joints']
-        structure, estimate, model = update.structure, update.estimate, update.model
-        key = np.searchsorted(frames, update.key_stamps)             # key frames among `frames`
-        # Step 2: per-bone rigid fits on every frame; Step 3: Alg. 2 on the key frames, the
-        # learned model fitted to the others
-        rotations, translations = fit_rigid_segments(rest, window, structure.labels, structure.n_bones)
-        step2 = joint_trajectories(rotations, translations, structure.joints, structure.parents)
-        joint_positions = np.empty_like(step2)
-        joint_positions[key] = estimate.joint_trajectories()
-        others = np.setdiff1d(np.arange(len(frames)), key)
-        if len(others):
-            tracker = LiveJointTracker(model, self.joint_params)
-            joint_positions[others] = np.stack([tracker.track(window[i]) for i in others])
-        # the rest: choosing the key frames, the Step 2 fits and the live fits of the others
+        stream = _LearningStream(SkeletonGrowth(rest, self.structure_params, self.joint_params), self.joint_params,
+                                 window, observed, seconds)
+        since, extracted_once = 0, False
+        for i in range(len(frames)):
+            stream.answer_live(i)
+            since += 1
+            if self.schedule.due(since, extracted_once):
+                start = max(0, i + 1 - self.schedule.window_size)
+                since, extracted_once = 0, True
+                if not stream.learn(start, i + 1, raising=False):
+                    extracted_once = self.schedule.sliding
+        if stream.update is None:
+            # nothing learned yet (a sequence shorter than the window, or no window showed
+            # articulation): the frames collected so far, as the accumulator's ~/extract
+            stream.learn(max(0, len(frames) - self.schedule.window_size), len(frames), raising=True)
+        update, model = stream.update, stream.update.model
+        joint_positions = stream.final_positions()
+        rotations, translations = fit_rigid_segments(rest, window, update.structure.labels, update.structure.n_bones)
+        step2 = joint_trajectories(rotations, translations, update.structure.joints, update.structure.parents)
+        # the rest: the Step 2 fits and the live fits
         seconds['live'] = time.perf_counter() - started - seconds['structure'] - seconds['joints']
-        return PipelineResult(registered, statuses, frames, structure, estimate, model, step2, joint_positions,
-                              observed, seconds, frames[key])
+        return PipelineResult(registered, reg.statuses_, frames, update.structure, update.estimate, model, step2,
+                              joint_positions, observed, seconds, frames[update.key_stamps])
+
+
+class _LearningStream:
+    """The joint node's answers over a stream of registered frames window (F, M, 3) (indices
+    0..F-1 serve as stamps): the current model's live fit for each new frame, Alg. 2's
+    joints for the learned window's frames that have none."""
+
+    def __init__(self, growth: SkeletonGrowth, joint_params: JointParams, window: np.ndarray, observed: list,
+                 seconds: dict):
+        self.growth, self.joint_params = growth, joint_params
+        self.window, self.observed, self.seconds = window, observed, seconds
+        self.update = None                  # the newest learned skeleton's GrowthUpdate
+        self.tracker = None                 # its live fit
+        self.answers = {}                   # frame -> (GrowthUpdate that answered, positions (J, 3))
+
+    def answer_live(self, frame: int) -> None:
+        if self.tracker is not None:
+            self.answers[frame] = (self.update, self.tracker.track(self.window[frame]))
+
+    def learn(self, start: int, stop: int, raising: bool) -> bool:
+        """Learn on frames start..stop-1 (with the key frames seen before); False when they
+        show no articulation (raised with `raising`)."""
+        frames = np.arange(start, stop)
+        started = time.perf_counter()
+        try:
+            update = self.growth.update(frames, self.window[frames], [self.observed[i] for i in frames])
+        except StructureError:
+            self.seconds['structure'] += time.perf_counter() - started
+            if raising:
+                raise
+            return False
+        self.seconds['structure'] += self.growth.seconds_['structure']
+        self.seconds['joints'] += self.growth.seconds_['joints']
+        if self.update is not None and not update.changed:
+            return True             # the same skeleton: the nodes keep the model they have
+        newest = max(self.answers, default=-1)
+        for frame, positions in zip(update.key_stamps, update.estimate.joint_trajectories()):
+            if frame > newest:
+                self.answers[int(frame)] = (update, positions)
+        self.update = update
+        self.tracker = LiveJointTracker(update.model, self.joint_params)
+        # frames up to `stop` not in the window and newer than every answer: the new model's fit
+        for frame in range(newest + 1, stop):
+            if frame not in self.answers:
+                self.answer_live(frame)
+        return True
+
+    def final_positions(self) -> np.ndarray:
+        """(F, J, 3): each frame's answer; the final skeleton's fit where a skeleton with
+        other joints answered, or none did."""
+        names = self.update.model.joint_names
+        final = []
+        for frame in range(len(self.window)):
+            update, positions = self.answers.get(frame, (None, None))
+            if update is None or update.model.joint_names != names:
+                positions = self.tracker.track(self.window[frame])
+            final.append(positions)
+        return np.stack(final)
