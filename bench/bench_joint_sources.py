@@ -1,0 +1,98 @@
+"""Where the joint error comes from: Steps 2 and 3 on the registration, and on a perfect one.
+
+    python bench/bench_joint_sources.py [--only wave,run] [--scenes empty] [--frames 90] [--work DIR]
+
+For each real clip (the subjects of bench_real_motion.py; the bags are simulated into --work
+or reused from it), the registration runs once as `skel-extract run` runs it; then Steps 2
+and 3 run twice on the same rest points and observed points: on the registered points, and
+on the true trajectories of the material points they started on (each registered point
+tied to the true surface at the registration's first frame and carried by its bone: what
+a perfect registration would give). Both are learned on all the frames (window_size larger
+than the clip) and scored with the yardstick (skel_extract_ros.evaluation). The gap between
+the two rows is what the registration costs the joints; what is left on the perfect row is
+the structure's and the joint placement's.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / 'bench'))
+
+from bench_real_motion import half, simulate_and_run, subjects  # noqa: E402
+from skel_extract_ros.bag import read_cloud_frames, select_cloud_topic  # noqa: E402
+from skel_extract_ros.core.growth import GrowthSchedule  # noqa: E402
+from skel_extract_ros.core.pipeline import SkeletonPipeline  # noqa: E402
+from skel_extract_ros.evaluation import (GroundTruth, PredictedSkeleton, evaluate_joints,  # noqa: E402
+                                         match_frames, registration_span)
+from skel_extract_ros.evaluation.registration import _material_trajectories  # noqa: E402
+
+
+def joint_scores(bag: Path) -> dict:
+    """{'registered': JointReport, 'perfect': JointReport} for one bag."""
+    topic = select_cloud_topic(bag)
+    frames = list(read_cloud_frames(bag, topic))
+    stamps = np.array([f.stamp for f in frames])
+    pipeline = SkeletonPipeline(schedule=GrowthSchedule(window_size=len(frames) + 1))
+    registered = pipeline.register(f.points.reshape(f.height, f.width, 3) if f.height > 1 else f.points
+                                   for f in frames)
+    gt = GroundTruth.load(bag / 'gt.npz')
+    first = int(np.flatnonzero(np.isfinite(registered).all(axis=(1, 2)))[0])
+    _, gt_index = match_frames(stamps, gt.stamps)
+    perfect = registered.astype(np.float64)
+    perfect[first:], _, _ = _material_trajectories(perfect[first], gt, gt_index[first:])
+    scores = {}
+    for name, points in (('registered', registered), ('perfect', perfect)):
+        result = pipeline.extract(points)
+        skeleton = PredictedSkeleton(result.model.joint_names, list(result.model.parents),
+                                     stamps[result.frames], result.joint_positions)
+        scores[name] = evaluate_joints(skeleton, gt, None, *registration_span(points, stamps))
+    return scores
+
+
+def _row(name: str, scene: str, source: str, report) -> str:
+    found = [j for j in report.per_joint if j['found']]
+    along = np.mean([j['offset_along_ray_m'] for j in found]) if found else float('nan')
+    across = np.mean([j['offset_across_ray_m'] for j in found]) if found else float('nan')
+    return (f'| {name} | {scene} | {half(name)} | {source} | {report.n_predicted} | '
+            f'{report.articulated_recall:.2f} / {report.articulated_recall_10cm:.2f} / '
+            f'{report.articulated_recall_5cm:.2f} | {report.precision:.2f} | {100 * report.mean_error_m:.1f} / '
+            f'{100 * report.normalized_error_m:.1f} | {100 * along:.1f} / {100 * across:.1f} | '
+            f'{report.moving_recall:.2f} | {report.tracking_skill:.2f} |')
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument('--only', default='', help='comma-separated name fragments (e.g. wave,run)')
+    parser.add_argument('--scenes', default='empty')
+    parser.add_argument('--frames', type=int, default=90)
+    parser.add_argument('--work', default=None, help='bags are simulated here, or reused when present')
+    args = parser.parse_args()
+    chosen = [(n, a) for n, a in subjects([o for o in args.only.split(',') if o]) if n not in ('samba',)]
+    if not chosen:
+        print('no real-motion data; nothing to benchmark')
+        return 0
+    work = Path(args.work) if args.work else Path(tempfile.mkdtemp(prefix='bench_sources_'))
+    print('| subject | scene | half | registration | found | artic. recall 15 / 10 / 5 cm | precision | '
+          'joint mean / offset removed (cm) | offset along / across the ray (cm) | moving recall | '
+          'tracking skill |')
+    print('|' + '---|' * 11)
+    for name, source_args in chosen:
+        for scene in args.scenes.split(','):
+            bag = work / f'{name}_{scene}'
+            if not (bag / 'gt.npz').is_file():
+                simulate_and_run(name, source_args, scene, args.frames, work)
+            scores = joint_scores(bag)
+            for source in ('registered', 'perfect'):
+                print(_row(name, scene, source, scores[source]), flush=True)
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
