@@ -47,10 +47,14 @@ OUTPUT_TOPICS = (
     ('skeleton/structure', 'std_msgs/msg/String', True),
     ('skeleton/description', 'std_msgs/msg/String', True),
     ('skeleton/joints', 'geometry_msgs/msg/PoseArray', False),
+    ('skeleton/trajectory', 'trajectory_msgs/msg/MultiDOFJointTrajectory', False),
+    ('skeleton/confidence', 'std_msgs/msg/String', False),
     ('skeleton/markers', 'visualization_msgs/msg/MarkerArray', False),
     ('skeleton/posed_points', 'sensor_msgs/msg/PointCloud2', False),
     ('/diagnostics', 'diagnostic_msgs/msg/DiagnosticArray', False),     # every node's health, 1 Hz
 )
+
+RECORDED_ONLY = ('skeleton/markers', 'skeleton/trajectory', 'skeleton/confidence')
 
 
 class ReplayError(RuntimeError):
@@ -181,8 +185,8 @@ class _Recorder:
         from .pointcloud import decode_xyz
         now = time.perf_counter()
         self.writer.write(self.connections[topic], time.time_ns(), raw)
-        # markers are recorded only: the files do not need them
-        msg = None if topic == 'skeleton/markers' else self._deserialize(raw, _ros_type(type_name))
+        # markers, trajectory and confidence are recorded only: the files do not need them
+        msg = None if topic in RECORDED_ONLY else self._deserialize(raw, _ros_type(type_name))
         r = self.received
         with self.condition:
             r.counts[topic] = r.counts.get(topic, 0) + 1

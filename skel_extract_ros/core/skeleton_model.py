@@ -30,12 +30,16 @@ class SkeletonModel:
         return len(self.parents)
 
     @property
+    def ids(self) -> list:
+        """(J,) the stable joint ids as ints (0..J-1 without joint_ids)."""
+        return [int(i) for i in (range(self.n_joints) if self.joint_ids is None else self.joint_ids)]
+
+    @property
     def joint_names(self) -> list:
-        ids = range(self.n_joints) if self.joint_ids is None else self.joint_ids
-        return [f'joint_{int(i)}' for i in ids]
+        return [f'joint_{i}' for i in self.ids]
 
     def to_json(self, stamps, positions, frame_id: str) -> dict:
-        """The skeleton.json document (DESIGN.md): stamps (F,) s, positions (F, J, 3) m."""
+        """The skeleton.json document (docs/contract.md): stamps (F,) s, positions (F, J, 3) m."""
         return skeleton_document(self.joint_names, self.parents, self.rest_joints, stamps, positions, frame_id)
 
 
