@@ -663,3 +663,49 @@ def test_a_live_frame_that_fails_is_one_warning_with_its_stamp(ros):
     node._live_failed((header(T0 + 7 * DT), np.zeros((0, 3))), RuntimeError('publish failed'))
     assert any(f'{(T0 + 7 * DT) * 1e-9:.3f} s failed: RuntimeError: publish failed' in line
                for line in ros.warnings('joint_estimation_node'))
+
+
+def _set(ros, node_name, **values):
+    """Set parameters of a node through its parameter services, as `ros2 param set` does;
+    returns the SetParametersResult of each."""
+    from rclpy.parameter_client import AsyncParameterClient
+    client = AsyncParameterClient(ros.probe, node_name)
+    assert client.wait_for_services(timeout_sec=30.0), f'{node_name} parameter services'
+    future = client.set_parameters([Parameter(k, value=v) for k, v in values.items()])
+    ros.wait(future.done, 30.0, f'{node_name} set_parameters')
+    return future.result().results
+
+
+def test_live_parameters_take_effect_and_the_others_are_read_only(ros):
+    """Over DDS, with a parameter client: a live parameter changes what the node does from
+    the next frame (the marker size, the accumulator's window); a read-only one is refused
+    with the reason, and an invalid value with the rule it breaks; nothing changes then."""
+    rest, registered, *_ = two_bone_sequence(n_frames=18)
+    node = ros.add(JointEstimationNode, parameter_overrides=[Parameter('live_frames', value='registered')])
+    accumulator = ros.add(AccumulatorNode)
+    joints = ros.listen('skeleton/joints', PoseArray, STREAM_QOS)
+    markers = ros.listen('skeleton/markers', MarkerArray, STREAM_QOS)
+    _learn_frames_0_to_11_with_12_registered_after(ros, node, rest, registered)
+    ros.wait(lambda: len(joints) == 13 and len(markers) == 13, what='joints of the window and frame 12')
+    assert {m.scale.x for m in markers[12].markers if m.type == Marker.SPHERE} == {0.04}
+    [result] = _set(ros, 'joint_estimation_node', joint_diameter=0.1)
+    assert result.successful, result.reason
+    _publish_two_bone(ros, rest, registered[13:15], start=13)
+    ros.wait(lambda: len(markers) == 15, what='markers of frames 13-14')
+    assert {m.scale.x for m in markers[14].markers if m.type == Marker.SPHERE} == {0.1}
+    # the method's parameters: the next Alg. 2 runs with them
+    assert _set(ros, 'joint_estimation_node', max_iterations=3)[0].successful
+    assert node.params.max_iterations == 3
+    # read-only: refused, with the reason
+    [result] = _set(ros, 'joint_estimation_node', live_frames='camera')
+    assert not result.successful and 'read-only' in result.reason and 'live_frames' in result.reason
+    assert node.live_frames == 'registered'
+    # out of the documented range: refused by the descriptor
+    [result] = _set(ros, 'joint_estimation_node', omega=2.0)
+    assert not result.successful and node.params.omega == 0.01
+    # the accumulator's window is live, its structure parameters read-only
+    assert _set(ros, 'accumulator_node', window_size=5, sliding=True)[0].successful
+    assert (accumulator.window_size, accumulator.sliding) == (5, True)
+    [result] = _set(ros, 'accumulator_node', n_clusters=5)
+    assert not result.successful and 'read-only' in result.reason
+    assert accumulator.params.n_clusters == 30

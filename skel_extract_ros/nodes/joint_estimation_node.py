@@ -58,8 +58,8 @@ from ..core.skeleton_model import SkeletonModel
 from ..core.structure import SkeletalStructure
 from ..params import joint_params_from_dict
 from .common import (LATCHED_QOS, STREAM_QOS, ParameterError, StampPairer, ThrottledLog, WorkingNode,
-                     declare_node_parameters, decode_or_warn, decode_registered_or_warn, release_freed_memory,
-                     run_node)
+                     declare_node_parameters, decode_or_warn, decode_registered_or_warn, on_live_parameters,
+                     release_freed_memory, run_node)
 from .conversions import cloud_message, parse_structure, stamp_ns
 from .diagnostics import OK, WARN, NodeDiagnostics
 from .skeleton_output import SkeletonOutput, registered_hints
@@ -79,6 +79,7 @@ class JointEstimationNode(WorkingNode):
         if self.live_frames not in ('camera', 'registered'):
             raise ParameterError(f"parameter live_frames must be 'camera' or 'registered', got {self.live_frames!r}")
         self.log = ThrottledLog(self.get_logger())
+        on_live_parameters(self, SECTION, self._apply_parameters)
         # description, joints, trajectory, confidence, markers (nodes/skeleton_output.py)
         self.output = SkeletonOutput(self, self.joint_diameter)
         self.markers_pub = self.output.markers_pub
@@ -110,6 +111,20 @@ class JointEstimationNode(WorkingNode):
         self.create_subscription(String, 'skeleton/structure', self._on_structure, LATCHED_QOS)
         self.diagnostics = NodeDiagnostics(self, self._diagnostics)
         self.get_logger().info('waiting for skeleton/structure')
+
+    def _apply_parameters(self, values: dict, _changed: set) -> None:
+        """`ros2 param set` (parameter_docs.LIVE): the method's parameters and
+        provisional_skeleton apply from the next structure (Alg. 2 and the trackers of the
+        model it gives), the rest from the next frame. ParamsError (a ValueError) refuses."""
+        params = joint_params_from_dict(values)
+        with self._lock:
+            self.params = params
+            self.buffer_size, self.provisional_skeleton = values['buffer_size'], values['provisional_skeleton']
+            self.live_sweeps, self.live_iterations = values['live_sweeps'], values['live_iterations']
+            self.output.joint_diameter = float(values['joint_diameter'])
+            if self.tracker is not None:       # the model tracked now, from its next frame
+                self.tracker.sweeps = self.live_sweeps
+                self.camera.tracker.iterations = self.live_iterations
 
     # -- inputs ----------------------------------------------------------------------------
     def _on_rest(self, msg: PointCloud2) -> None:
