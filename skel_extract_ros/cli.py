@@ -301,6 +301,15 @@ def _cmd_replay(args) -> int:
     return 0
 
 
+def _cmd_record(args) -> int:
+    from .record import record
+    out = Path(args.out)
+    demonstration = record(out, args.topic, idle=args.idle, frames=args.frames, namespace=args.namespace,
+                           started=lambda topic: print(f'recording {topic} (Ctrl-C ends)', flush=True))
+    print(f'wrote {out / "demonstration.csv"}, {out / "demonstration.bvh"} ({len(demonstration)} frames)')
+    return 0
+
+
 def _cmd_info(args) -> int:
     from .bag import BagError, read_cloud_frames, select_cloud_topic
     try:
@@ -412,6 +421,19 @@ def build_parser() -> argparse.ArgumentParser:
     replay_cmd.add_argument('--params', default=None, help='ROS 2 parameter YAML for the nodes')
     replay_cmd.add_argument('--namespace', default=None, help='run the nodes and topics in this namespace')
     replay_cmd.set_defaults(handler=_cmd_replay)
+
+    record_cmd = commands.add_parser(
+        'record', help='record skeleton/trajectory into a demonstration file (CSV and BVH)',
+        description='An example consumer: subscribes to skeleton/trajectory (standard messages only) and, on '
+                    'Ctrl-C, writes OUT/demonstration.csv (named joint positions, rotations and velocities per '
+                    'stamp) and OUT/demonstration.bvh.')
+    record_cmd.add_argument('--out', required=True, help='output directory (created if missing)')
+    record_cmd.add_argument('--topic', default='skeleton/trajectory', help='MultiDOFJointTrajectory topic')
+    record_cmd.add_argument('--namespace', default=None, help='the nodes\' namespace')
+    record_cmd.add_argument('--idle', type=float, default=None, metavar='S',
+                            help='stop S seconds after the last message (default: only on Ctrl-C)')
+    record_cmd.add_argument('--frames', type=int, default=None, metavar='N', help='stop after N messages')
+    record_cmd.set_defaults(handler=_cmd_record)
 
     info = commands.add_parser('info', help='summarise the point clouds in a bag')
     info.add_argument('input', help='rosbag2 directory or .mcap file')
