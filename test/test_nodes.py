@@ -422,6 +422,7 @@ def _check_trajectory(ros, described, joints, rest, registered):
     trajectory, confidence = ros.received['trajectory'], ros.received['confidence']
     ros.wait(lambda: len(trajectory) == len(confidence) == len(joints), what='a trajectory point per frame')
     assert described['version'] == 1
+    assert len(described['confidence']) == 2 and min(described['confidence']) > 0.8
     assert stamps_of(trajectory) == stamps_of(joints)
     positions = np.array([[[p.position.x, p.position.y, p.position.z] for p in m.poses] for m in joints])
     for k, message in enumerate(trajectory):

@@ -106,18 +106,21 @@ def parse_structure(text: str) -> dict:
 
 
 def description_document(model: SkeletonModel, frame_id: str, window_stamps_ns, changes: dict | None = None,
-                         provisional: bool = False, version: int = 1) -> dict:
+                         provisional: bool = False, version: int = 1, confidence=None) -> dict:
     """The skeleton/description JSON: version (a counter that changes with every new
     description: skeleton/confidence carries the version of each frame), joint_names
     (stable across updates), parents, rest_positions, frame, the frames it was learned on,
     what changed since the previous description (joint names added / removed / reparented
-    / moved) and whether it is provisional (Step 2's skeleton, tracked while Alg. 2 runs;
-    the next description refines it under the same joint names)."""
+    / moved), whether it is provisional (Step 2's skeleton, tracked while Alg. 2 runs;
+    the next description refines it under the same joint names) and the per-joint
+    confidence (J,) in [0, 1] of the frames it was learned on (core/confidence.py; None:
+    not given)."""
     return {'version': int(version), 'frame_id': frame_id, 'joint_names': model.joint_names,
             'parents': [int(p) for p in model.parents],
             'rest_positions': np.round(model.rest_joints, 6).tolist(),
             'window_stamps_ns': [int(s) for s in window_stamps_ns],
-            'changes': changes or {}, 'provisional': bool(provisional)}
+            'changes': changes or {}, 'provisional': bool(provisional),
+            'confidence': None if confidence is None else np.round(np.asarray(confidence, dtype=float), 4).tolist()}
 
 
 def pose_array(positions: np.ndarray, header: Header, quaternions: np.ndarray | None = None) -> PoseArray:

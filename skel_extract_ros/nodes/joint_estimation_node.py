@@ -295,14 +295,18 @@ class JointEstimationNode(WorkingNode):
         camera = CameraTracker(ArticulatedTracker(model, self.params, iterations=self.live_iterations), tracker)
         # the refinement of a provisional description lists no changes: same joints, same tree
         changes = {} if refining and not provisional else document['changes']
-        described = self.output.describe(model, document['frame_id'], stamps, changes, provisional)
+        window = [(stamp, header, *self._registered_outputs(model, tracker, registered, rotations, translations))
+                  for stamp, (header, registered, _), rotations, translations in zip(stamps, frames, *window_pose)]
+        # the skeleton's confidence: each joint's median over the frames it was learned on
+        confidence = np.median([frame[-1] for frame in window], axis=0)
+        described = self.output.describe(model, document['frame_id'], stamps, changes, provisional, confidence)
         with self._lock:
             done = self.last_published
         # a frame that already has joints (live, from the previous model) is not published
         # twice: a growing skeleton's key frames can be minutes old
-        for stamp, (header, registered, _), rotations, translations in zip(stamps, frames, *window_pose):
+        for stamp, header, positions, hints, frame_confidence in window:
             if done is None or stamp > done:
-                self._publish_registered(described, tracker, header, registered, rotations, translations)
+                self._publish_joints(described, header, positions, hints, frame_confidence)
         in_window = set(stamps)
         with self._lock:
             # registered frames without joints that are not in the window (between key frames,
@@ -344,11 +348,17 @@ class JointEstimationNode(WorkingNode):
             self._publish_registered(described, tracker, header, registered, rotations, translations)
 
     def _publish_registered(self, described, tracker, header, registered, rotations, translations) -> None:
-        """A registered frame's joints from the model's bone transforms at it (rotations
-        (B, 3, 3), translations (B, 3)): twist and confidence from its registered points."""
-        self._publish_joints(described, header, tracker.joints_of(rotations, translations),
-                             registered_hints(described.model, registered),
-                             tracker.confidence(rotations, translations, registered, corresponding=True))
+        """Publish a registered frame's joints (see _registered_outputs)."""
+        self._publish_joints(described, header,
+                             *self._registered_outputs(described.model, tracker, registered, rotations, translations))
+
+    @staticmethod
+    def _registered_outputs(model, tracker, registered, rotations, translations) -> tuple:
+        """(positions (J, 3) m, twist hints (B, 3, 3), confidence (J,)) of a registered frame
+        (M, 3) from the model's bone transforms at it (rotations (B, 3, 3), translations
+        (B, 3)): twist and confidence from its registered points."""
+        return (tracker.joints_of(rotations, translations), registered_hints(model, registered),
+                tracker.confidence(rotations, translations, registered, corresponding=True))
 
     def _live_camera_frame(self, item) -> None:
         """Joints for one camera frame (live_frames camera), on the live Worker."""

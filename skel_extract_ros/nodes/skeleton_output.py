@@ -95,12 +95,14 @@ class SkeletonOutput:
         self.velocities = FrameVelocities()
 
     def describe(self, model: SkeletonModel, frame_id: str, window_stamps_ns, changes: dict,
-                 provisional: bool) -> DescribedSkeleton:
-        """Publish the description of a new skeleton (the next version) and return it."""
+                 provisional: bool, confidence) -> DescribedSkeleton:
+        """Publish the description of a new skeleton (the next version) and return it;
+        confidence (J,): the skeleton's per-joint confidence."""
         with self._lock:
             self._version += 1
             described = DescribedSkeleton(model, self._version)
-        document = description_document(model, frame_id, window_stamps_ns, changes, provisional, described.version)
+        document = description_document(model, frame_id, window_stamps_ns, changes, provisional, described.version,
+                                        confidence)
         self.description_pub.publish(String(data=json.dumps(document)))
         return described
 
