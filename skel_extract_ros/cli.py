@@ -332,6 +332,12 @@ def _cmd_info(args) -> int:
     return 0
 
 
+# what run, replay and info read from a bag
+TOPIC_HELP = ('the bag\'s PointCloud2 topic, or its depth Image topic (16UC1 mm or 32FC1 m, its CameraInfo on '
+              'the sibling camera_info topic, e.g. /camera/depth/image_raw as in the sample bag); default: the '
+              'only one')
+
+
 def build_parser() -> argparse.ArgumentParser:
     from .sim import SUBJECTS
     from .sim.camera import RESOLUTIONS
@@ -398,7 +404,7 @@ def build_parser() -> argparse.ArgumentParser:
     run = commands.add_parser('run', help='run the pipeline on a bag and write the results to --out')
     run.add_argument('input', help='rosbag2 directory (mcap or sqlite3) or .mcap file')
     run.add_argument('--out', required=True, help='output directory (created if missing)')
-    run.add_argument('--topic', default=None, help='PointCloud2 topic (default: the only one)')
+    run.add_argument('--topic', default=None, help=TOPIC_HELP)
     run.add_argument('--params', default=None, help='ROS 2 parameter YAML (params/skel_extract.yaml)')
     run.add_argument('--frames', default=None, help='frame index range a:b (python slice)')
     run.set_defaults(handler=_cmd_run)
@@ -417,7 +423,7 @@ def build_parser() -> argparse.ArgumentParser:
     replay_cmd.add_argument('--bounce', action='store_true',
                             help='with --loop: every other pass plays the bag backwards, so the motion stays '
                                  'continuous (a walker walks back instead of jumping to the start)')
-    replay_cmd.add_argument('--topic', default=None, help='PointCloud2 topic in the bag (default: the only one)')
+    replay_cmd.add_argument('--topic', default=None, help=TOPIC_HELP)
     replay_cmd.add_argument('--params', default=None, help='ROS 2 parameter YAML for the nodes')
     replay_cmd.add_argument('--namespace', default=None, help='run the nodes and topics in this namespace')
     replay_cmd.set_defaults(handler=_cmd_replay)
@@ -435,9 +441,9 @@ def build_parser() -> argparse.ArgumentParser:
     record_cmd.add_argument('--frames', type=int, default=None, metavar='N', help='stop after N messages')
     record_cmd.set_defaults(handler=_cmd_record)
 
-    info = commands.add_parser('info', help='summarise the point clouds in a bag')
+    info = commands.add_parser('info', help='summarise the point clouds or depth images in a bag')
     info.add_argument('input', help='rosbag2 directory or .mcap file')
-    info.add_argument('--topic', default=None)
+    info.add_argument('--topic', default=None, help=TOPIC_HELP)
     info.set_defaults(handler=_cmd_info)
     return parser
 
