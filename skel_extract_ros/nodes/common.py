@@ -224,8 +224,12 @@ def run_node(node_factory, args=None) -> int:
     rclpy.init(args=args)
     node = None
     try:
+        # the executor before the node: the node's "waiting for ..." line says it is up, and a
+        # Ctrl-C right after it once landed inside the executor's constructor (rclpy.spin makes
+        # it on first use), whose half-built object then raised in __del__ (a traceback in the log)
+        executor = rclpy.get_global_executor()
         node = node_factory()
-        rclpy.spin(node)
+        rclpy.spin(node, executor)
     except ParameterError as error:
         print(f'{sys.argv[0]}: error: {error}', file=sys.stderr)
         return 2
