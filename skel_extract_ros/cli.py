@@ -226,7 +226,7 @@ def _cmd_run(args) -> int:
         result = pipeline.extract(registered)
     except StructureError as error:
         raise UserError(f'{args.input}: {error}') from None
-    document = result.model.to_json(stamps[result.frames], result.joint_positions, frame_id)
+    document = result.model.to_json(stamps[result.frames], result.joint_positions, frame_id, result.joint_confidence)
     (out / 'skeleton.json').write_text(json.dumps(document))
     from .bvh_export import write_skeleton_bvh
     write_skeleton_bvh(out / 'skeleton.bvh', result.model.joint_names, result.model.parents,

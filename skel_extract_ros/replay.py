@@ -72,6 +72,7 @@ class Received:
     registered_at: dict = field(default_factory=dict)
     joints: dict = field(default_factory=dict)            # stamp -> (J, 3), last received
     joint_names: dict = field(default_factory=dict)       # stamp -> its joints' names (skeleton/confidence)
+    confidence: dict = field(default_factory=dict)        # stamp -> (J,) its joints' confidence
     structures: list = field(default_factory=list)        # every skeleton/structure, in order
     descriptions: list = field(default_factory=list)      # every skeleton/description, in order
     joints_at: dict = field(default_factory=dict)
@@ -217,6 +218,7 @@ class _Recorder:
                 # which skeleton's joints a frame has: a PoseArray says nothing of it
                 document = json.loads(msg.data)
                 r.joint_names[int(document['stamp_ns'])] = document['joint_names']
+                r.confidence[int(document['stamp_ns'])] = document['confidence']
             elif topic == '/diagnostics':
                 for status in msg.status:
                     if status.name.endswith('/accumulator_node'):
@@ -525,7 +527,8 @@ def _write_files(received: Received, out: Path) -> dict:
                       if set(d['window_stamps_ns']) == set(description['window_stamps_ns'])), received.structure)
     document = skeleton_document(description['joint_names'], description['parents'],
                                  description['rest_positions'], np.array(answered) * 1e-9,
-                                 np.stack([received.joints[s] for s in answered]), description['frame_id'])
+                                 np.stack([received.joints[s] for s in answered]), description['frame_id'],
+                                 [received.confidence.get(s) for s in answered])
     (out / 'skeleton.json').write_text(json.dumps(document))
     with_joints = [s for s in answered if s in received.registered]
     positions = np.stack([received.joints[s] for s in with_joints])

@@ -31,7 +31,9 @@ class PipelineResult:
     """registered: (F, M, 3); statuses: (F,); frames: indices of the frames with a skeleton
     (those registered with status ok); step2_positions / joint_positions: (F', J, 3) joint
     positions after Step 2 and after Step 3 for those frames; seconds per step; key_frames:
-    the frames (indices into registered) the skeleton was learned on."""
+    the frames (indices into registered) the skeleton was learned on; joint_confidence
+    (F', J) the Step 3 joints' confidence in [0, 1] (core.confidence, against each frame's
+    registered points, as the joint node publishes it)."""
 
     registered: np.ndarray
     statuses: np.ndarray
@@ -44,6 +46,7 @@ class PipelineResult:
     observed: list
     seconds: dict = field(default_factory=dict)
     key_frames: np.ndarray | None = None
+    joint_confidence: np.ndarray | None = None
 
 
 class SkeletonPipeline:
@@ -95,12 +98,16 @@ class SkeletonPipeline:
         rotations, translations = fit_rigid_segments(rest, window, structure.labels, structure.n_bones)
         step2 = joint_trajectories(rotations, translations, structure.joints, structure.parents)
         joint_positions = np.empty_like(step2)
+        confidence = np.empty(step2.shape[:2])
         joint_positions[key] = estimate.joint_trajectories()
-        others = np.setdiff1d(np.arange(len(frames)), key)
-        if len(others):
-            tracker = LiveJointTracker(model, self.joint_params)
-            joint_positions[others] = np.stack([tracker.track(window[i]) for i in others])
+        tracker = LiveJointTracker(model, self.joint_params)
+        for k, i in enumerate(key):
+            confidence[i] = tracker.confidence(estimate.rotations[k], estimate.translations[k], window[i], True)
+        for i in np.setdiff1d(np.arange(len(frames)), key):
+            rotations_i, translations_i = tracker.fit(window[i])
+            joint_positions[i] = tracker.joints_of(rotations_i, translations_i)
+            confidence[i] = tracker.confidence(rotations_i, translations_i, window[i], True)
         # the rest: choosing the key frames, the Step 2 fits and the live fits of the others
         seconds['live'] = time.perf_counter() - started - seconds['structure'] - seconds['joints']
         return PipelineResult(registered, statuses, frames, structure, estimate, model, step2, joint_positions,
-                              observed, seconds, frames[key])
+                              observed, seconds, frames[key], confidence)
