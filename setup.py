@@ -19,6 +19,7 @@ setup(
         ('share/' + PACKAGE_NAME, ['package.xml']),
         ('share/' + PACKAGE_NAME + '/params', glob('params/*.yaml') + glob('params/*.xml')),
         ('share/' + PACKAGE_NAME + '/launch', glob('launch/*.launch.py')),
+        ('share/' + PACKAGE_NAME + '/rviz', glob('rviz/*.rviz')),
     ],
     install_requires=[
         'setuptools',

@@ -243,7 +243,7 @@ def _cmd_run(args) -> int:
         result = pipeline.extract(registered)
     except StructureError as error:
         raise UserError(f'{args.input}: {error}') from None
-    document = result.model.to_json(stamps[result.frames], result.joint_positions, frame_id)
+    document = result.model.to_json(stamps[result.frames], result.joint_positions, frame_id, result.joint_confidence)
     (out / 'skeleton.json').write_text(json.dumps(document))
     from .bvh_export import write_skeleton_bvh
     write_skeleton_bvh(out / 'skeleton.bvh', result.model.joint_names, result.model.parents,
@@ -336,6 +336,15 @@ def _cmd_replay(args) -> int:
     return 0
 
 
+def _cmd_record(args) -> int:
+    from .record import record
+    out = Path(args.out)
+    demonstration = record(out, args.topic, idle=args.idle, frames=args.frames, namespace=args.namespace,
+                           started=lambda topic: print(f'recording {topic} (Ctrl-C ends)', flush=True))
+    print(f'wrote {out / "demonstration.csv"}, {out / "demonstration.bvh"} ({len(demonstration)} frames)')
+    return 0
+
+
 def _cmd_info(args) -> int:
     from .bag import BagError, read_cloud_frames, select_cloud_topic
     try:
@@ -356,6 +365,12 @@ def _cmd_info(args) -> int:
           f'{layout[0]}x{layout[1]}, {duration:.2f} s, '
           f'valid points per frame {counts.min()}-{counts.max()} (median {int(np.median(counts))})')
     return 0
+
+
+# what run, replay and info read from a bag
+TOPIC_HELP = ('the bag\'s PointCloud2 topic, or its depth Image topic (16UC1 mm or 32FC1 m, its CameraInfo on '
+              'the sibling camera_info topic, e.g. /camera/depth/image_raw as in the sample bag); default: the '
+              'only one')
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -424,7 +439,7 @@ def build_parser() -> argparse.ArgumentParser:
     run = commands.add_parser('run', help='run the pipeline on a bag and write the results to --out')
     run.add_argument('input', help='rosbag2 directory (mcap or sqlite3) or .mcap file')
     run.add_argument('--out', required=True, help='output directory (created if missing)')
-    run.add_argument('--topic', default=None, help='PointCloud2 topic (default: the only one)')
+    run.add_argument('--topic', default=None, help=TOPIC_HELP)
     run.add_argument('--params', default=None, help='ROS 2 parameter YAML (params/skel_extract.yaml)')
     run.add_argument('--frames', default=None, help='frame index range a:b (python slice)')
     run.set_defaults(handler=_cmd_run)
@@ -443,14 +458,27 @@ def build_parser() -> argparse.ArgumentParser:
     replay_cmd.add_argument('--bounce', action='store_true',
                             help='with --loop: every other pass plays the bag backwards, so the motion stays '
                                  'continuous (a walker walks back instead of jumping to the start)')
-    replay_cmd.add_argument('--topic', default=None, help='PointCloud2 topic in the bag (default: the only one)')
+    replay_cmd.add_argument('--topic', default=None, help=TOPIC_HELP)
     replay_cmd.add_argument('--params', default=None, help='ROS 2 parameter YAML for the nodes')
     replay_cmd.add_argument('--namespace', default=None, help='run the nodes and topics in this namespace')
     replay_cmd.set_defaults(handler=_cmd_replay)
 
-    info = commands.add_parser('info', help='summarise the point clouds in a bag')
+    record_cmd = commands.add_parser(
+        'record', help='record skeleton/trajectory into a demonstration file (CSV and BVH)',
+        description='An example consumer: subscribes to skeleton/trajectory (standard messages only) and, on '
+                    'Ctrl-C, writes OUT/demonstration.csv (named joint positions, rotations and velocities per '
+                    'stamp) and OUT/demonstration.bvh.')
+    record_cmd.add_argument('--out', required=True, help='output directory (created if missing)')
+    record_cmd.add_argument('--topic', default='skeleton/trajectory', help='MultiDOFJointTrajectory topic')
+    record_cmd.add_argument('--namespace', default=None, help='the nodes\' namespace')
+    record_cmd.add_argument('--idle', type=float, default=None, metavar='S',
+                            help='stop S seconds after the last message (default: only on Ctrl-C)')
+    record_cmd.add_argument('--frames', type=int, default=None, metavar='N', help='stop after N messages')
+    record_cmd.set_defaults(handler=_cmd_record)
+
+    info = commands.add_parser('info', help='summarise the point clouds or depth images in a bag')
     info.add_argument('input', help='rosbag2 directory or .mcap file')
-    info.add_argument('--topic', default=None)
+    info.add_argument('--topic', default=None, help=TOPIC_HELP)
     info.set_defaults(handler=_cmd_info)
     return parser
 

@@ -177,6 +177,27 @@ _JOINTS = {
 PARAMETER_DOCS = {'registration_node': _REGISTRATION, 'accumulator_node': _ACCUMULATOR,
                   'joint_estimation_node': _JOINTS}
 
+# The parameters a running node takes from `ros2 param set` (its parameter callback applies
+# them; LIVE_FROM says from when). Every other parameter is declared read-only, so a set
+# fails with that reason: the registration runs Alg. 1 in a child process started with its
+# parameters and subscribes to its input once; the accumulator's growing skeleton keeps the
+# structure parameters it started with; the joint node's live_frames chooses its
+# subscriptions' use and estimation_niceness its thread's priority at start.
+LIVE = {'registration_node': frozenset(),
+        'accumulator_node': frozenset({'window_size', 'sliding', 'stride'}),
+        'joint_estimation_node': frozenset(set(_JOINTS) - {'live_frames', 'estimation_niceness'})}
+LIVE_FROM = {'registration_node': '',
+             'accumulator_node': 'the next registered frame',
+             'joint_estimation_node': 'the next frame (joint_diameter, live_iterations, live_sweeps, buffer_size) '
+                                      'or the next skeleton/structure (the method\'s parameters, '
+                                      'provisional_skeleton)'}
+READ_ONLY_NOTE = ' [read-only: set at start, in the params file or with --ros-args -p]'
+
+
+def is_live(node: str, name: str) -> bool:
+    """Whether a running node applies a new value of the parameter (else it is read-only)."""
+    return name in LIVE[node]
+
 
 def describe(node: str, name: str) -> tuple:
     """(description, low, high) of a node parameter; KeyError for an undocumented one."""
@@ -234,9 +255,15 @@ def _format_default(value) -> str:
 
 def markdown_table(node: str) -> str:
     """The README table of a node's parameters: name, default, meaning (with unit)."""
-    lines = ['| parameter | default | meaning (unit) |', '|---|---|---|']
+    lines = ['| parameter | default | live | meaning (unit) |', '|---|---|---|---|']
     for name, default in parameter_defaults(node).items():
-        lines.append(f'| `{name}` | `{_format_default(default)}` | {PARAMETER_DOCS[node][name][0]} |')
+        live = 'yes' if is_live(node, name) else ''
+        lines.append(f'| `{name}` | `{_format_default(default)}` | {live} | {PARAMETER_DOCS[node][name][0]} |')
+    if LIVE_FROM[node]:
+        lines.append(f'\n`live`: `ros2 param set` applies it from {LIVE_FROM[node]}; the others are '
+                     'read-only (a set fails with the reason).')
+    else:
+        lines.append('\nEvery parameter of this node is read-only once it runs (a set fails with the reason).')
     return '\n'.join(lines)
 
 

@@ -47,10 +47,14 @@ OUTPUT_TOPICS = (
     ('skeleton/structure', 'std_msgs/msg/String', True),
     ('skeleton/description', 'std_msgs/msg/String', True),
     ('skeleton/joints', 'geometry_msgs/msg/PoseArray', False),
+    ('skeleton/trajectory', 'trajectory_msgs/msg/MultiDOFJointTrajectory', False),
+    ('skeleton/confidence', 'std_msgs/msg/String', False),
     ('skeleton/markers', 'visualization_msgs/msg/MarkerArray', False),
     ('skeleton/posed_points', 'sensor_msgs/msg/PointCloud2', False),
     ('/diagnostics', 'diagnostic_msgs/msg/DiagnosticArray', False),     # every node's health, 1 Hz
 )
+
+RECORDED_ONLY = ('skeleton/markers', 'skeleton/trajectory')
 
 
 class ReplayError(RuntimeError):
@@ -67,6 +71,10 @@ class Received:
     registered: dict = field(default_factory=dict)        # stamp -> (M, 3)
     registered_at: dict = field(default_factory=dict)
     joints: dict = field(default_factory=dict)            # stamp -> (J, 3), last received
+    joint_names: dict = field(default_factory=dict)       # stamp -> its joints' names (skeleton/confidence)
+    confidence: dict = field(default_factory=dict)        # stamp -> (J,) its joints' confidence
+    structures: list = field(default_factory=list)        # every skeleton/structure, in order
+    descriptions: list = field(default_factory=list)      # every skeleton/description, in order
     joints_at: dict = field(default_factory=dict)
     rest: np.ndarray | None = None
     structure: dict | None = None
@@ -181,8 +189,8 @@ class _Recorder:
         from .pointcloud import decode_xyz
         now = time.perf_counter()
         self.writer.write(self.connections[topic], time.time_ns(), raw)
-        # markers are recorded only: the files do not need them
-        msg = None if topic == 'skeleton/markers' else self._deserialize(raw, _ros_type(type_name))
+        # markers, trajectory and confidence are recorded only: the files do not need them
+        msg = None if topic in RECORDED_ONLY else self._deserialize(raw, _ros_type(type_name))
         r = self.received
         with self.condition:
             r.counts[topic] = r.counts.get(topic, 0) + 1
@@ -197,13 +205,20 @@ class _Recorder:
                 r.rest = decode_xyz(msg, dtype=np.float64)
             elif topic == 'skeleton/structure':
                 r.structure = json.loads(msg.data)
+                r.structures.append(r.structure)
             elif topic == 'skeleton/description':
                 r.description = json.loads(msg.data)
+                r.descriptions.append(r.description)
                 if r.description_at is None:
                     r.description_at = now
             elif topic == 'skeleton/joints':
                 stamp = stamp_ns(msg.header)
                 r.joints[stamp], r.joints_at[stamp] = pose_array_positions(msg), now
+            elif topic == 'skeleton/confidence':
+                # which skeleton's joints a frame has: a PoseArray says nothing of it
+                document = json.loads(msg.data)
+                r.joint_names[int(document['stamp_ns'])] = document['joint_names']
+                r.confidence[int(document['stamp_ns'])] = document['confidence']
             elif topic == '/diagnostics':
                 for status in msg.status:
                     if status.name.endswith('/accumulator_node'):
@@ -387,6 +402,9 @@ def replay(input_path, out, rate: float = 1.0, topic: str | None = None, params_
             if rate > 0:
                 due = started + (stamp - first_stamp) * 1e-9 / rate
                 time.sleep(max(0.0, due - time.perf_counter()))
+            if not realtime and not recorder.wait_for(lambda: _described(received), 120.0, alive):
+                print('skel-extract replay: the newest skeleton/structure was not described within 120 s; '
+                      'going on', file=sys.stderr)
             received.published_at[stamp] = time.perf_counter()
             if depth_image:   # the camera info at or before the image goes first
                 info = infos[max(int(np.searchsorted(info_stamps, original, side='right')) - 1, 0)]
@@ -471,6 +489,16 @@ def replay(input_path, out, rate: float = 1.0, topic: str | None = None, params_
     return summary
 
 
+def _described(received: Received) -> bool:
+    """Whether the joint node has described the newest structure (or there is none yet).
+    Lossless, a frame is published only then: a skeleton that grows (sliding windows) has
+    grown before the frames after the update are answered, whatever the machine's speed
+    (else how many frames get the grown skeleton depends on how long Alg. 2 takes)."""
+    structure, description = received.structure, received.description
+    return structure is None or (description is not None and
+                                 set(description['window_stamps_ns']) == set(structure['window_stamps_ns']))
+
+
 def _write_files(received: Received, out: Path) -> dict:
     from .bvh_export import write_skeleton_bvh
     from .core.skeleton_model import skeleton_document
@@ -484,18 +512,27 @@ def _write_files(received: Received, out: Path) -> dict:
                         rest_points=(received.rest if received.rest is not None
                                      else np.empty((0, 3))).astype(np.float32),
                         frame_id=np.array(received.frame_id))
-    description = received.description
+    # the newest skeleton that answered frames (one described after the last frame answered
+    # none), and every frame it answered (a live camera frame has no registered points); a
+    # frame answered by another skeleton (before it grew) has other joints, named on
+    # skeleton/confidence, and is left out
+    def answered_by(description):
+        names = description['joint_names']
+        return sorted(s for s, p in received.joints.items()
+                      if len(p) == len(names) and received.joint_names.get(s, names) == names)
+    description = next((d for d in reversed(received.descriptions) if answered_by(d)), received.description)
+    answered = answered_by(description)
     n_joints = len(description['joint_names'])
-    # every frame the nodes gave joints (a live camera frame has no registered points); a
-    # frame answered before the skeleton grew has fewer joints and is left out
-    answered = sorted(s for s, p in received.joints.items() if len(p) == n_joints)
+    structure = next((d for d in received.structures
+                      if set(d['window_stamps_ns']) == set(description['window_stamps_ns'])), received.structure)
     document = skeleton_document(description['joint_names'], description['parents'],
                                  description['rest_positions'], np.array(answered) * 1e-9,
-                                 np.stack([received.joints[s] for s in answered]), description['frame_id'])
+                                 np.stack([received.joints[s] for s in answered]), description['frame_id'],
+                                 [received.confidence.get(s) for s in answered])
     (out / 'skeleton.json').write_text(json.dumps(document))
     with_joints = [s for s in answered if s in received.registered]
     positions = np.stack([received.joints[s] for s in with_joints])
-    labels = np.asarray(received.structure['labels'])
+    labels = np.asarray(structure['labels'])
     registered = np.stack([received.registered[s] for s in with_joints])
     write_skeleton_bvh(out / 'skeleton.bvh', description['joint_names'], description['parents'],
                        description['rest_positions'], np.array(with_joints) * 1e-9, positions,

@@ -35,6 +35,8 @@ def test_executables_land_in_lib_and_start(colcon_install):
     assert (colcon_install / 'share' / 'ament_index' / 'resource_index' / 'packages' / 'skel_extract_ros').is_file()
     assert (colcon_install / 'share' / 'skel_extract_ros' / 'params' / 'skel_extract.yaml').is_file()
     assert (colcon_install / 'share' / 'skel_extract_ros' / 'params' / 'fastdds_large_messages.xml').is_file()
+    assert (colcon_install / 'share' / 'skel_extract_ros' / 'launch' / 'skel_extract.launch.py').is_file()
+    assert (colcon_install / 'share' / 'skel_extract_ros' / 'rviz' / 'skel_extract.rviz').is_file()
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(str(p) for p in
                                                       colcon_install.glob('lib/python3*/site-packages')))
     done = subprocess.run([str(executable), '--help'], capture_output=True, text=True, env=env, timeout=120)

@@ -107,7 +107,7 @@ def test_run_node_ends_cleanly_when_ctrl_c_races_the_executor(monkeypatch):
 
     from skel_extract_ros.nodes.common import run_node
 
-    def racing_spin(node):
+    def racing_spin(node, executor=None):
         rclpy.shutdown()          # what the signal handler does, from another thread
         raise RCLError('failed to initialize wait set: the given context is not valid')
 
@@ -115,7 +115,7 @@ def test_run_node_ends_cleanly_when_ctrl_c_races_the_executor(monkeypatch):
     assert run_node(lambda: rclpy.create_node('shutdown_race')) == 0
     assert not rclpy.ok()
 
-    def failing_spin(node):
+    def failing_spin(node, executor=None):
         raise RCLError('failed to take a message')
 
     monkeypatch.setattr(rclpy, 'spin', failing_spin)
@@ -142,7 +142,7 @@ def test_run_node_stops_the_nodes_work_and_leaves_its_entities_to_the_context(mo
             calls.append('destroy_node')
             return super().destroy_node()
 
-    def interrupted_spin(node):
+    def interrupted_spin(node, executor=None):
         rclpy.shutdown()
         raise KeyboardInterrupt
 

@@ -10,6 +10,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
+from trajectory_msgs.msg import MultiDOFJointTrajectory
 from visualization_msgs.msg import Marker, MarkerArray
 
 from ros_harness import DT, T0, cloud, header, stamps_of
@@ -21,7 +22,7 @@ from skel_extract_ros.core.sequence import SequenceRegistration
 from skel_extract_ros.core.structure import StructureParams, extract_structure
 from skel_extract_ros.nodes.accumulator_node import AccumulatorNode
 from skel_extract_ros.nodes.common import LATCHED_QOS, STREAM_QOS, ParameterError
-from skel_extract_ros.nodes import joint_estimation_node
+from skel_extract_ros.nodes import joint_estimation_node, skeleton_output
 from skel_extract_ros.nodes.conversions import cloud_message, skeleton_markers, structure_document
 from skel_extract_ros.nodes.joint_estimation_node import JointEstimationNode
 from skel_extract_ros.nodes.registration_node import RegistrationNode
@@ -371,6 +372,8 @@ def test_joint_estimation_node_window_then_live(ros):
     description = ros.listen('skeleton/description', String, LATCHED_QOS)
     joints = ros.listen('skeleton/joints', PoseArray, STREAM_QOS)
     markers = ros.listen('skeleton/markers', MarkerArray, STREAM_QOS)
+    ros.received['trajectory'] = ros.listen('skeleton/trajectory', MultiDOFJointTrajectory, STREAM_QOS)
+    ros.received['confidence'] = ros.listen('skeleton/confidence', String, STREAM_QOS)
     rest_pub = _publish_rest(ros, rest)
     ros.wait_matched(rest_pub)
     window = registered[:12]
@@ -388,13 +391,18 @@ def test_joint_estimation_node_window_then_live(ros):
     child = described['parents'].index(0)
     positions = np.array([[p.position.x, p.position.y, p.position.z] for p in joints[5].poses])
     assert np.linalg.norm(positions[child] - joint_path[5]) < 2e-3
-    # markers: a sphere per joint with id = joint index, one LINE_LIST, input header
+    # markers: DELETEALL first (a new skeleton), a sphere and a name label per joint with
+    # id = the stable joint id, one LINE_LIST, input header
     ros.wait(lambda: len(markers) == 12, what='markers for every window frame')
+    assert markers[0].markers[0].action == Marker.DELETEALL
+    assert all(m.action != Marker.DELETEALL for k in range(1, 12) for m in markers[k].markers)
     spheres = [m for m in markers[0].markers if m.type == Marker.SPHERE]
     assert [m.id for m in spheres] == [0, 1]
+    labels = [m for m in markers[0].markers if m.type == Marker.TEXT_VIEW_FACING]
+    assert [(m.id, m.text) for m in labels] == [(0, 'joint_0'), (1, 'joint_1')]
     lines = [m for m in markers[0].markers if m.type == Marker.LINE_LIST]
     assert len(lines) == 1 and len(lines[0].points) == 2
-    assert markers[0].markers[0].header.frame_id == 'camera_depth_optical_frame'
+    assert all(m.header.frame_id == 'camera_depth_optical_frame' for m in markers[0].markers)
     # live: later frames, never seen by Alg. 2
     _publish_two_bone(ros, rest, registered[12:], start=12)
     ros.wait(lambda: len(joints) == 24, what='live joints')
@@ -402,13 +410,69 @@ def test_joint_estimation_node_window_then_live(ros):
     live = np.array([[joints[i].poses[child].position.x, joints[i].poses[child].position.y,
                       joints[i].poses[child].position.z] for i in range(12, 24)])
     assert np.linalg.norm(live - joint_path[12:], axis=1).max() < 3e-3
+    _check_trajectory(ros, described, joints, rest, registered)
+
+
+def _check_trajectory(ros, described, joints, rest, registered):
+    """skeleton/trajectory and skeleton/confidence against skeleton/joints (the two-bone
+    sequence, noise-free): one message per joints message, same header, the description's
+    names, translations = joint positions, rotations = the bones' (true within 2 deg) and
+    the PoseArray's orientations, velocities = the finite differences, confidence high."""
+    from scipy.spatial.transform import Rotation
+    trajectory, confidence = ros.received['trajectory'], ros.received['confidence']
+    ros.wait(lambda: len(trajectory) == len(confidence) == len(joints), what='a trajectory point per frame')
+    assert described['version'] == 1
+    assert len(described['confidence']) == 2 and min(described['confidence']) > 0.8
+    assert stamps_of(trajectory) == stamps_of(joints)
+    positions = np.array([[[p.position.x, p.position.y, p.position.z] for p in m.poses] for m in joints])
+    for k, message in enumerate(trajectory):
+        assert isinstance(message, MultiDOFJointTrajectory) and len(message.points) == 1
+        assert message.joint_names == described['joint_names']
+        assert message.header.frame_id == joints[k].header.frame_id
+        transforms = message.points[0].transforms
+        np.testing.assert_allclose([[t.translation.x, t.translation.y, t.translation.z] for t in transforms],
+                                   positions[k])
+        quaternions = [[t.rotation.x, t.rotation.y, t.rotation.z, t.rotation.w] for t in transforms]
+        np.testing.assert_allclose(quaternions, [[p.orientation.x, p.orientation.y, p.orientation.z,
+                                                  p.orientation.w] for p in joints[k].poses])
+        # each joint's rotation is one of the two bones' true rotations, not the same one twice
+        truth = _two_bone_rotations(rest, registered[k])
+        found = [int(np.argmin([(Rotation.from_quat(q) * t.inv()).magnitude() for t in truth])) for q in quaternions]
+        assert sorted(found) == [0, 1]
+        for q, bone in zip(quaternions, found):
+            assert np.degrees((Rotation.from_quat(q) * truth[bone].inv()).magnitude()) < 2.0
+        velocities = message.points[0].velocities
+        if k == 0:
+            assert len(velocities) == 0           # no earlier frame: no velocity
+        else:
+            assert len(velocities) == 2
+            np.testing.assert_allclose([[v.linear.x, v.linear.y, v.linear.z] for v in velocities],
+                                       (positions[k] - positions[k - 1]) / (DT * 1e-9), atol=1e-6)
+            step = Rotation.from_quat(quaternions) * Rotation.from_quat(previous).inv()
+            np.testing.assert_allclose([[v.angular.x, v.angular.y, v.angular.z] for v in velocities],
+                                       step.as_rotvec() / (DT * 1e-9), atol=1e-6)
+        previous = quaternions
+        document = json.loads(confidence[k].data)
+        assert document['stamp_ns'] == stamps_of(joints)[k] and document['version'] == 1
+        assert document['joint_names'] == described['joint_names']
+        assert all(0.8 < c <= 1.0 for c in document['confidence']), document   # noise-free: the fit is exact
+
+
+def _two_bone_rotations(rest, frame):
+    """The two bones' true rotations (rest -> frame) of the two-bone sequence."""
+    from scipy.spatial.transform import Rotation
+
+    from skel_extract_ros.core.rigid import fit_rigid_segments
+    labels = (rest[:, 0] > 0).astype(int)
+    rotations = fit_rigid_segments(rest, frame[None], labels, 2)[0][0]
+    return [Rotation.from_matrix(r) for r in rotations]
 
 
 def test_joint_estimation_node_builds_markers_only_for_a_reader(ros, monkeypatch):
     """skeleton/markers costs ~0.9 ms a live frame to build and serialise: not without a reader."""
     built = []
-    monkeypatch.setattr(joint_estimation_node, 'skeleton_markers',
-                        lambda *args: built.append(args[2]) or skeleton_markers(*args))
+    monkeypatch.setattr(skeleton_output, 'skeleton_markers',
+                        lambda *args, **kwargs: built.append(args[2]) or skeleton_markers(*args, **kwargs))
     rest, registered, *_ = two_bone_sequence(n_frames=18)
     node = ros.add(JointEstimationNode, parameter_overrides=[Parameter('live_frames', value='registered')])
     joints = ros.listen('skeleton/joints', PoseArray, STREAM_QOS)
@@ -495,6 +559,9 @@ def test_joint_estimation_node_tracks_the_step2_skeleton_while_alg2_runs(ros, he
     assert node.provisional_skeleton
     joints = ros.listen('skeleton/joints', PoseArray, STREAM_QOS)
     description = ros.listen('skeleton/description', String, LATCHED_QOS)
+    markers = ros.listen('skeleton/markers', MarkerArray, STREAM_QOS)
+    confidence = ros.listen('skeleton/confidence', String, STREAM_QOS)
+    ros.wait(lambda: node.markers_pub.get_subscription_count() > 0, what='the markers reader matched')
     _learn_frames_0_to_11_with_12_registered_after(ros, node, rest, registered)
     ros.wait(lambda: len(joints) == 13 and len(description) == 1, what='the provisional skeleton')
     provisional = json.loads(description[0].data)
@@ -528,6 +595,15 @@ def test_joint_estimation_node_tracks_the_step2_skeleton_while_alg2_runs(ros, he
         ros.wait(lambda: len(joints) == i + 1, what=f"live joints of camera frame {i} (Alg. 2's model)")
     assert stamps_of(joints) == [T0 + i * DT for i in range(24)]
     assert node._diagnostics()[1] == 'tracking 2 joints'
+    # the version changes with the skeleton; a marker reader is told to drop the old
+    # skeleton's markers (DELETEALL) with the first markers of each version, once
+    assert (provisional['version'], refined['version']) == (1, 2)
+    ros.wait(lambda: len(markers) == len(confidence) == 24, what='markers and confidence of every frame')
+    versions = [json.loads(m.data)['version'] for m in confidence]
+    assert versions == [1] * 18 + [2] * 6
+    cleared = [any(m.action == Marker.DELETEALL for m in array.markers) for array in markers]
+    assert cleared == [True] + [False] * 17 + [True] + [False] * 5
+    assert markers[18].markers[0].action == Marker.DELETEALL
 
 
 MALFORMED = [
@@ -588,3 +664,49 @@ def test_a_live_frame_that_fails_is_one_warning_with_its_stamp(ros):
     node._live_failed((header(T0 + 7 * DT), np.zeros((0, 3))), RuntimeError('publish failed'))
     assert any(f'{(T0 + 7 * DT) * 1e-9:.3f} s failed: RuntimeError: publish failed' in line
                for line in ros.warnings('joint_estimation_node'))
+
+
+def _set(ros, node_name, **values):
+    """Set parameters of a node through its parameter services, as `ros2 param set` does;
+    returns the SetParametersResult of each."""
+    from rclpy.parameter_client import AsyncParameterClient
+    client = AsyncParameterClient(ros.probe, node_name)
+    assert client.wait_for_services(timeout_sec=30.0), f'{node_name} parameter services'
+    future = client.set_parameters([Parameter(k, value=v) for k, v in values.items()])
+    ros.wait(future.done, 30.0, f'{node_name} set_parameters')
+    return future.result().results
+
+
+def test_live_parameters_take_effect_and_the_others_are_read_only(ros):
+    """Over DDS, with a parameter client: a live parameter changes what the node does from
+    the next frame (the marker size, the accumulator's window); a read-only one is refused
+    with the reason, and an invalid value with the rule it breaks; nothing changes then."""
+    rest, registered, *_ = two_bone_sequence(n_frames=18)
+    node = ros.add(JointEstimationNode, parameter_overrides=[Parameter('live_frames', value='registered')])
+    accumulator = ros.add(AccumulatorNode)
+    joints = ros.listen('skeleton/joints', PoseArray, STREAM_QOS)
+    markers = ros.listen('skeleton/markers', MarkerArray, STREAM_QOS)
+    _learn_frames_0_to_11_with_12_registered_after(ros, node, rest, registered)
+    ros.wait(lambda: len(joints) == 13 and len(markers) == 13, what='joints of the window and frame 12')
+    assert {m.scale.x for m in markers[12].markers if m.type == Marker.SPHERE} == {0.04}
+    [result] = _set(ros, 'joint_estimation_node', joint_diameter=0.1)
+    assert result.successful, result.reason
+    _publish_two_bone(ros, rest, registered[13:15], start=13)
+    ros.wait(lambda: len(markers) == 15, what='markers of frames 13-14')
+    assert {m.scale.x for m in markers[14].markers if m.type == Marker.SPHERE} == {0.1}
+    # the method's parameters: the next Alg. 2 runs with them
+    assert _set(ros, 'joint_estimation_node', max_iterations=3)[0].successful
+    assert node.params.max_iterations == 3
+    # read-only: refused, with the reason
+    [result] = _set(ros, 'joint_estimation_node', live_frames='camera')
+    assert not result.successful and 'read-only' in result.reason and 'live_frames' in result.reason
+    assert node.live_frames == 'registered'
+    # out of the documented range: refused by the descriptor
+    [result] = _set(ros, 'joint_estimation_node', omega=2.0)
+    assert not result.successful and node.params.omega == 0.01
+    # the accumulator's window is live, its structure parameters read-only
+    assert _set(ros, 'accumulator_node', window_size=5, sliding=True)[0].successful
+    assert (accumulator.window_size, accumulator.sliding) == (5, True)
+    [result] = _set(ros, 'accumulator_node', n_clusters=5)
+    assert not result.successful and 'read-only' in result.reason
+    assert accumulator.params.n_clusters == 30

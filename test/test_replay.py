@@ -40,6 +40,10 @@ def test_replay_sample_bag_records_every_topic_and_matches_run(tmp_path, sample_
     assert [f['stamp'] for f in replayed['frames']] == [f['stamp'] for f in offline['frames']]
     np.testing.assert_allclose([f['positions'] for f in replayed['frames']],
                                [f['positions'] for f in offline['frames']], atol=1e-3)
+    # and every frame's per-joint confidence (skeleton/confidence, core/confidence.py)
+    confidence = np.array([f['confidence'] for f in offline['frames']])
+    assert confidence.shape == (59, len(offline['joint_names'])) and 0.0 <= confidence.min() <= confidence.max() <= 1.0
+    np.testing.assert_allclose([f['confidence'] for f in replayed['frames']], confidence, atol=5e-3)
     # run keeps every input frame (frame 0, before the rest pose, NaN); the nodes publish
     # only registered frames
     offline_points = np.load(run_out / 'registered.npz')

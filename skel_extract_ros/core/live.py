@@ -45,8 +45,10 @@ second old once tracking), a diverged frame gets that registered pose.
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from .articulated import BoneBlocks
+from .confidence import joint_confidence
 from .gmm import CandidateCache
 from .joints import JointParams
 from .point_sets import finite_rows, median_spacing
@@ -66,6 +68,8 @@ LIVE_ALPHA_START = 1e-4
 # reweighting rounds of the whole-body move (Cauchy weights, the scale the median residual):
 # a limb bent otherwise than its starting pose should not turn the body
 WHOLE_BODY_ROUNDS = 3
+# observed points a camera frame's confidence is measured on at most (a strided subset)
+CONFIDENCE_SAMPLES = 1000
 
 
 class _BoneBlocks:
@@ -144,6 +148,25 @@ class _BoneBlocks:
     def joints_of(self, rotations: np.ndarray, translations: np.ndarray) -> np.ndarray:
         """(J, 3) joint positions for one frame's bone transforms."""
         return joint_trajectories(rotations[None], translations[None], self._joints, self._parents)[0]
+
+    def confidence(self, rotations: np.ndarray, translations: np.ndarray, points: np.ndarray,
+                   corresponding: bool) -> np.ndarray:
+        """(J,) per-joint confidence in [0, 1] (core.confidence) of the pose (rotations
+        (B, 3, 3), translations (B, 3)) against a frame's points, m: its registered points
+        (M, 3), which correspond to the model's (corresponding=True), or its observed subject
+        points (N, 3), each matched to the nearest posed model point."""
+        posed = self.deform(rotations, translations)
+        points = np.asarray(points, dtype=np.float64)
+        if corresponding:
+            squared = np.sum((points[self._subset] - posed) ** 2, axis=1)
+            return joint_confidence(self._parents, self._dominant, squared)
+        points = points[finite_rows(points)]
+        # a strided subset, as the fit uses: the mean residual per bone needs no more
+        points = points[::max(1, -(-len(points) // CONFIDENCE_SAMPLES))]
+        if len(points) == 0:
+            return np.zeros(self.n_bones)
+        distance, nearest = cKDTree(posed).query(points)
+        return joint_confidence(self._parents, self._dominant[nearest], distance ** 2)
 
 
 class LiveJointTracker(_BoneBlocks):
@@ -323,6 +346,7 @@ class CameraTracker:
         self.tracker, self.fit = tracker, fit
         self._registered = None                      # (stamp, rotations, translations), newest
         self._fitted = None                          # the last frame's fitted transforms, if fitted
+        self.pose = None                             # the last frame's served transforms (any outcome)
         self.counts = {'fitted': 0, 'lost': 0, 'registered': 0}
 
     def registered(self, stamp: int, registered_points: np.ndarray) -> None:
@@ -350,6 +374,7 @@ class CameraTracker:
             if outcome == 'fitted':
                 rotations, translations = fitted
         self._fitted = (rotations, translations) if outcome == 'fitted' else None
+        self.pose = (rotations, translations)
         self.counts[outcome] += 1
         return self.fit.joints_of(rotations, translations), outcome
 

@@ -32,7 +32,9 @@ class PipelineResult:
     """registered: (F, M, 3); statuses: (F,); frames: indices of the frames with a skeleton
     (those registered with status ok); step2_positions / joint_positions: (F', J, 3) joint
     positions after Step 2 and after Step 3 for those frames; seconds per step; key_frames:
-    the frames (indices into registered) the skeleton was learned on."""
+    the frames (indices into registered) the skeleton was learned on; joint_confidence
+    (F', J) the Step 3 joints' confidence in [0, 1] (core.confidence, against each frame's
+    registered points, as the joint node publishes it)."""
 
     registered: np.ndarray
     statuses: np.ndarray
@@ -45,6 +47,7 @@ class PipelineResult:
     observed: list
     seconds: dict = field(default_factory=dict)
     key_frames: np.ndarray | None = None
+    joint_confidence: np.ndarray | None = None
 
 
 class SkeletonPipeline:
@@ -104,19 +107,20 @@ class SkeletonPipeline:
             # articulation): the frames collected so far, as the accumulator's ~/extract
             stream.learn(max(0, len(frames) - self.schedule.window_size), len(frames), raising=True)
         update, model = stream.update, stream.update.model
-        joint_positions = stream.final_positions()
+        joint_positions, confidence = stream.final_answers()
         rotations, translations = fit_rigid_segments(rest, window, update.structure.labels, update.structure.n_bones)
         step2 = joint_trajectories(rotations, translations, update.structure.joints, update.structure.parents)
         # the rest: the Step 2 fits and the live fits
         seconds['live'] = time.perf_counter() - started - seconds['structure'] - seconds['joints']
         return PipelineResult(registered, reg.statuses_, frames, update.structure, update.estimate, model, step2,
-                              joint_positions, observed, seconds, frames[update.key_stamps])
+                              joint_positions, observed, seconds, frames[update.key_stamps], confidence)
 
 
 class _LearningStream:
     """The joint node's answers over a stream of registered frames window (F, M, 3) (indices
     0..F-1 serve as stamps): the current model's live fit for each new frame, Alg. 2's
-    joints for the learned window's frames that have none."""
+    joints for the learned window's frames that have none; each answer's joints (J, 3) and
+    their confidence (J,) against the frame's registered points."""
 
     def __init__(self, growth: SkeletonGrowth, joint_params: JointParams, window: np.ndarray, observed: list,
                  seconds: dict):
@@ -124,11 +128,16 @@ class _LearningStream:
         self.window, self.observed, self.seconds = window, observed, seconds
         self.update = None                  # the newest learned skeleton's GrowthUpdate
         self.tracker = None                 # its live fit
-        self.answers = {}                   # frame -> (GrowthUpdate that answered, positions (J, 3))
+        self.answers = {}                   # frame -> (GrowthUpdate that answered, positions, confidence)
 
     def answer_live(self, frame: int) -> None:
         if self.tracker is not None:
-            self.answers[frame] = (self.update, self.tracker.track(self.window[frame]))
+            self.answers[frame] = (self.update, *self._fit(self.tracker, frame))
+
+    def _fit(self, tracker: LiveJointTracker, frame: int) -> tuple:
+        rotations, translations = tracker.fit(self.window[frame])
+        return (tracker.joints_of(rotations, translations),
+                tracker.confidence(rotations, translations, self.window[frame], True))
 
     def learn(self, start: int, stop: int, raising: bool) -> bool:
         """Learn on frames start..stop-1 (with the key frames seen before); False when they
@@ -147,25 +156,29 @@ class _LearningStream:
         if self.update is not None and not update.changed:
             return True             # the same skeleton: the nodes keep the model they have
         newest = max(self.answers, default=-1)
-        for frame, positions in zip(update.key_stamps, update.estimate.joint_trajectories()):
+        tracker = LiveJointTracker(update.model, self.joint_params)
+        estimate = update.estimate
+        for k, (frame, positions) in enumerate(zip(update.key_stamps, estimate.joint_trajectories())):
             if frame > newest:
-                self.answers[int(frame)] = (update, positions)
-        self.update = update
-        self.tracker = LiveJointTracker(update.model, self.joint_params)
+                confidence = tracker.confidence(estimate.rotations[k], estimate.translations[k],
+                                                self.window[frame], True)
+                self.answers[int(frame)] = (update, positions, confidence)
+        self.update, self.tracker = update, tracker
         # frames up to `stop` not in the window and newer than every answer: the new model's fit
         for frame in range(newest + 1, stop):
             if frame not in self.answers:
                 self.answer_live(frame)
         return True
 
-    def final_positions(self) -> np.ndarray:
-        """(F, J, 3): each frame's answer; the final skeleton's fit where a skeleton with
-        other joints answered, or none did."""
+    def final_answers(self) -> tuple:
+        """(positions (F, J, 3), confidence (F, J)): each frame's answer; the final
+        skeleton's fit where a skeleton with other joints answered, or none did."""
         names = self.update.model.joint_names
-        final = []
+        positions, confidence = [], []
         for frame in range(len(self.window)):
-            update, positions = self.answers.get(frame, (None, None))
+            update, *answer = self.answers.get(frame, (None, None, None))
             if update is None or update.model.joint_names != names:
-                positions = self.tracker.track(self.window[frame])
-            final.append(positions)
-        return np.stack(final)
+                answer = self._fit(self.tracker, frame)
+            positions.append(answer[0])
+            confidence.append(answer[1])
+        return np.stack(positions), np.stack(confidence)

@@ -30,23 +30,35 @@ class SkeletonModel:
         return len(self.parents)
 
     @property
+    def ids(self) -> list:
+        """(J,) the stable joint ids as ints (0..J-1 without joint_ids)."""
+        return [int(i) for i in (range(self.n_joints) if self.joint_ids is None else self.joint_ids)]
+
+    @property
     def joint_names(self) -> list:
-        ids = range(self.n_joints) if self.joint_ids is None else self.joint_ids
-        return [f'joint_{int(i)}' for i in ids]
+        return [f'joint_{i}' for i in self.ids]
 
-    def to_json(self, stamps, positions, frame_id: str) -> dict:
-        """The skeleton.json document (`skeleton_document`): stamps (F,) s, positions (F, J, 3) m."""
-        return skeleton_document(self.joint_names, self.parents, self.rest_joints, stamps, positions, frame_id)
+    def to_json(self, stamps, positions, frame_id: str, confidence=None) -> dict:
+        """The skeleton.json document (docs/contract.md): stamps (F,) s, positions (F, J, 3)
+        m, confidence (F, J) in [0, 1] or None."""
+        return skeleton_document(self.joint_names, self.parents, self.rest_joints, stamps, positions, frame_id,
+                                 confidence)
 
 
-def skeleton_document(joint_names, parents, rest_positions, stamps, positions, frame_id: str) -> dict:
+def skeleton_document(joint_names, parents, rest_positions, stamps, positions, frame_id: str,
+                      confidence=None) -> dict:
     """skeleton.json: names (J,), parents (J,), rest_positions (J, 3) m, stamps (F,) s,
-    positions (F, J, 3) m in the input frame (non-finite values become null)."""
+    positions (F, J, 3) m in the input frame (non-finite values become null), and per frame
+    the joints' confidence (F, J) in [0, 1] (core.confidence) when given (a frame whose
+    confidence is unknown: None, left out)."""
     positions = np.asarray(positions, dtype=np.float64)
     frames = [{'stamp': float(stamp),
                'positions': [[None if not np.isfinite(v) else round(float(v), 6) for v in joint]
                              for joint in frame]}
               for stamp, frame in zip(stamps, positions)]
+    for frame, values in zip(frames, confidence if confidence is not None else []):
+        if values is not None:
+            frame['confidence'] = [round(float(c), 4) for c in values]
     return {
         'frame_id': frame_id,
         'joint_names': list(joint_names),

@@ -91,7 +91,7 @@ class PredictedSkeleton:
             raise EvaluationError(f'{path}: expected a JSON object with joint_names and frames')
         for key in ('joint_names', 'parents', 'frames'):
             if key not in doc:
-                raise EvaluationError(f'{path} has no "{key}" (see the skeleton.json schema in DESIGN.md)')
+                raise EvaluationError(f'{path} has no "{key}" (see the skeleton.json schema in docs/contract.md)')
         names, frames = doc['joint_names'], doc['frames']
         n_joints = len(names)
         if len(doc['parents']) != n_joints:

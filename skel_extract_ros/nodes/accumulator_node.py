@@ -30,7 +30,7 @@ from ..core.growth import SkeletonGrowth
 from ..core.structure import StructureError, StructureParams
 from ..params import structure_params_from_dict
 from .common import (LATCHED_QOS, STREAM_QOS, StampPairer, ThrottledLog, WorkingNode, declare_node_parameters,
-                     decode_or_warn, decode_registered_or_warn, release_freed_memory, run_node)
+                     decode_or_warn, decode_registered_or_warn, on_live_parameters, release_freed_memory, run_node)
 from .conversions import stamp_ns, structure_document
 from .diagnostics import OK, WARN, NodeDiagnostics
 from .worker import RateMeter, Worker
@@ -44,6 +44,7 @@ class AccumulatorNode(WorkingNode):
         self.params, values = declare_node_parameters(self, SECTION, StructureParams, structure_params_from_dict)
         self.window_size, self.sliding, self.stride = values['window_size'], values['sliding'], values['stride']
         self.log = ThrottledLog(self.get_logger())
+        on_live_parameters(self, SECTION, self._apply_parameters)
         self.structure_pub = self.create_publisher(String, 'skeleton/structure', LATCHED_QOS)
         self._lock = threading.Lock()
         self.rest = None                 # (M, 3) float64
@@ -67,6 +68,11 @@ class AccumulatorNode(WorkingNode):
         self.diagnostics = NodeDiagnostics(self, self._diagnostics)
         mode = f'sliding, every {self.stride} frames' if self.sliding else 'once'
         self.get_logger().info(f'waiting for registered_points: windows of {self.window_size} frames ({mode})')
+
+    def _apply_parameters(self, values: dict, _changed: set) -> None:
+        """`ros2 param set` of the window (parameter_docs.LIVE): from the next registered frame."""
+        with self._lock:
+            self.window_size, self.sliding, self.stride = values['window_size'], values['sliding'], values['stride']
 
     # -- inputs ----------------------------------------------------------------------------
     def _on_rest(self, msg: PointCloud2) -> None:

@@ -8,13 +8,14 @@ import threading
 import time
 import typing
 
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
+from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType,
+                                SetParametersResult)
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.node import Node
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
                        qos_profile_sensor_data)
 
-from ..parameter_docs import describe, unset_value
+from ..parameter_docs import PARAMETER_DOCS, READ_ONLY_NOTE, describe, is_live, unset_value
 
 # Depth drivers publish best effort or reliable; a best-effort reader matches both.
 SENSOR_QOS = qos_profile_sensor_data
@@ -95,7 +96,9 @@ def declare(node, section: str, name: str, value, kind=None, dynamic: bool = Fal
     """Declare one documented parameter; returns its value. A value of the wrong type or
     out of range raises ParameterError with the name and what is expected."""
     description, low, high = describe(section, name)
-    descriptor = ParameterDescriptor(name=name, description=description, dynamic_typing=dynamic)
+    live = is_live(section, name)
+    descriptor = ParameterDescriptor(name=name, description=description + ('' if live else READ_ONLY_NOTE),
+                                     dynamic_typing=dynamic, read_only=not live)
     if kind is not None:
         descriptor.type = kind
     if low is not None and isinstance(value, float):
@@ -106,6 +109,26 @@ def declare(node, section: str, name: str, value, kind=None, dynamic: bool = Fal
         return node.declare_parameter(name, value, descriptor).value
     except (InvalidParameterTypeException, InvalidParameterValueException) as error:
         raise ParameterError(f'parameter {name}: {error} ({description})') from None
+
+
+def on_live_parameters(node, section: str, apply) -> None:
+    """Apply `ros2 param set` on the node's live parameters (parameter_docs.LIVE; the others
+    are read-only, rclpy refuses them before this). apply(values, changed) gets every
+    documented parameter's value with the new ones in ({name: value}) and the names that
+    change; a ValueError it raises refuses the whole set with its message as the reason."""
+    def callback(parameters) -> SetParametersResult:
+        changed = {p.name: p.value for p in parameters if p.name in PARAMETER_DOCS[section]}
+        if not changed:
+            return SetParametersResult(successful=True)
+        values = {name: node.get_parameter(name).value for name in PARAMETER_DOCS[section] if node.has_parameter(name)}
+        values.update(changed)
+        try:
+            apply(values, set(changed))
+        except ValueError as error:
+            return SetParametersResult(successful=False, reason=str(error))
+        node.get_logger().info('parameters set: ' + ', '.join(f'{k} = {v!r}' for k, v in sorted(changed.items())))
+        return SetParametersResult(successful=True)
+    node.add_on_set_parameters_callback(callback)
 
 
 class ThrottledLog:
@@ -201,8 +224,12 @@ def run_node(node_factory, args=None) -> int:
     rclpy.init(args=args)
     node = None
     try:
+        # the executor before the node: the node's "waiting for ..." line says it is up, and a
+        # Ctrl-C right after it once landed inside the executor's constructor (rclpy.spin makes
+        # it on first use), whose half-built object then raised in __del__ (a traceback in the log)
+        executor = rclpy.get_global_executor()
         node = node_factory()
-        rclpy.spin(node)
+        rclpy.spin(node, executor)
     except ParameterError as error:
         print(f'{sys.argv[0]}: error: {error}', file=sys.stderr)
         return 2

@@ -106,26 +106,34 @@ def parse_structure(text: str) -> dict:
 
 
 def description_document(model: SkeletonModel, frame_id: str, window_stamps_ns, changes: dict | None = None,
-                         provisional: bool = False) -> dict:
-    """The skeleton/description JSON: joint_names (stable across updates), parents,
-    rest_positions, frame, the frames it was learned on, what changed since the previous
-    description (joint names added / removed / reparented / moved) and whether it is
-    provisional (Step 2's skeleton, tracked while Alg. 2 runs; the next description
-    refines it under the same joint names)."""
-    return {'frame_id': frame_id, 'joint_names': model.joint_names,
+                         provisional: bool = False, version: int = 1, confidence=None) -> dict:
+    """The skeleton/description JSON: version (a counter that changes with every new
+    description: skeleton/confidence carries the version of each frame), joint_names
+    (stable across updates), parents, rest_positions, frame, the frames it was learned on,
+    what changed since the previous description (joint names added / removed / reparented
+    / moved), whether it is provisional (Step 2's skeleton, tracked while Alg. 2 runs;
+    the next description refines it under the same joint names) and the per-joint
+    confidence (J,) in [0, 1] of the frames it was learned on (core/confidence.py; None:
+    not given)."""
+    return {'version': int(version), 'frame_id': frame_id, 'joint_names': model.joint_names,
             'parents': [int(p) for p in model.parents],
             'rest_positions': np.round(model.rest_joints, 6).tolist(),
             'window_stamps_ns': [int(s) for s in window_stamps_ns],
-            'changes': changes or {}, 'provisional': bool(provisional)}
+            'changes': changes or {}, 'provisional': bool(provisional),
+            'confidence': None if confidence is None else np.round(np.asarray(confidence, dtype=float), 4).tolist()}
 
 
-def pose_array(positions: np.ndarray, header: Header) -> PoseArray:
-    """One pose per joint (identity orientation), in the input frame."""
+def pose_array(positions: np.ndarray, header: Header, quaternions: np.ndarray | None = None) -> PoseArray:
+    """One pose per joint, in the input frame: positions (J, 3) m, orientations quaternions
+    (J, 4) x y z w (None: identity)."""
     msg = PoseArray(header=header)
+    positions = np.asarray(positions, dtype=float)
+    if quaternions is None:
+        quaternions = np.tile([0.0, 0.0, 0.0, 1.0], (len(positions), 1))
     msg.poses = [Pose() for _ in range(len(positions))]
-    for pose, (x, y, z) in zip(msg.poses, np.asarray(positions, dtype=float)):
-        pose.position.x, pose.position.y, pose.position.z = float(x), float(y), float(z)
-        pose.orientation.w = 1.0
+    for pose, (x, y, z), (qx, qy, qz, qw) in zip(msg.poses, positions.tolist(), np.asarray(quaternions).tolist()):
+        pose.position.x, pose.position.y, pose.position.z = x, y, z
+        pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w = qx, qy, qz, qw
     return msg
 
 
@@ -134,18 +142,40 @@ def pose_array_positions(msg) -> np.ndarray:
     return np.array([[p.position.x, p.position.y, p.position.z] for p in msg.poses], dtype=np.float64).reshape(-1, 3)
 
 
-def skeleton_markers(positions: np.ndarray, parents, header: Header, joint_diameter: float = 0.04) -> MarkerArray:
-    """A SPHERE per joint (id = joint index, namespace 'joints') and one LINE_LIST of the
-    bones (namespace 'bones', id 0)."""
+def skeleton_markers(positions: np.ndarray, parents, header: Header, joint_diameter: float = 0.04, ids=None,
+                     names=None, confidence=None, delete_all: bool = False) -> MarkerArray:
+    """A SPHERE per joint (namespace 'joints', id = the joint's stable id, default its
+    index; coloured from red at confidence 0 to green at 1, orange without one), a
+    TEXT_VIEW_FACING label per joint with its name (namespace 'names', same id, above the
+    sphere) when names are given, and one LINE_LIST of the bones (namespace 'bones', id 0).
+    delete_all: a DELETEALL first, so that the joints of an earlier skeleton (a joint a
+    growth update removed) leave RViz. positions (J, 3) m; confidence (J,) in [0, 1]."""
     positions = np.asarray(positions, dtype=float)
+    ids = range(len(positions)) if ids is None else ids
     markers = MarkerArray()
-    for index, (x, y, z) in enumerate(positions):
-        sphere = Marker(header=header, ns='joints', id=index, type=Marker.SPHERE, action=Marker.ADD)
-        sphere.pose.position.x, sphere.pose.position.y, sphere.pose.position.z = float(x), float(y), float(z)
+    if delete_all:
+        markers.markers.append(Marker(header=header, action=Marker.DELETEALL))
+    for index, (marker_id, (x, y, z)) in enumerate(zip(ids, positions.tolist())):
+        sphere = Marker(header=header, ns='joints', id=int(marker_id), type=Marker.SPHERE, action=Marker.ADD)
+        sphere.pose.position.x, sphere.pose.position.y, sphere.pose.position.z = x, y, z
         sphere.pose.orientation.w = 1.0
         sphere.scale.x = sphere.scale.y = sphere.scale.z = float(joint_diameter)
-        sphere.color = ColorRGBA(r=1.0, g=0.3, b=0.1, a=1.0)
+        if confidence is None:
+            sphere.color = ColorRGBA(r=1.0, g=0.3, b=0.1, a=1.0)
+        else:
+            level = float(np.clip(confidence[index], 0.0, 1.0))
+            sphere.color = ColorRGBA(r=1.0 - level, g=level, b=0.1, a=1.0)
         markers.markers.append(sphere)
+        if names is not None:
+            label = Marker(header=header, ns='names', id=int(marker_id), type=Marker.TEXT_VIEW_FACING,
+                           action=Marker.ADD, text=str(names[index]))
+            # above the sphere: y is down in a camera's optical frame, up elsewhere; a
+            # diameter to the side keeps the label off the sphere either way
+            label.pose.position.x, label.pose.position.y, label.pose.position.z = x + float(joint_diameter), y, z
+            label.pose.orientation.w = 1.0
+            label.scale.z = float(joint_diameter)          # text height, m
+            label.color = ColorRGBA(r=1.0, g=1.0, b=1.0, a=1.0)
+            markers.markers.append(label)
     bones = Marker(header=header, ns='bones', id=0, type=Marker.LINE_LIST, action=Marker.ADD)
     bones.pose.orientation.w = 1.0
     bones.scale.x = float(joint_diameter) / 4.0

@@ -2,11 +2,16 @@
 
 Subscribes  skeleton/structure (std_msgs/String JSON, transient local)
             registered_points, filtered_points (PointCloud2, reliable), rest_points (transient local)
-Publishes   skeleton/description (std_msgs/String JSON, transient local): joint_names,
-            parents, rest_positions, frame_id, window_stamps_ns
-            skeleton/joints  (geometry_msgs/PoseArray, one pose per joint, input header)
+Publishes   (nodes/skeleton_output.py; the contract: docs/contract.md; all on the input header)
+            skeleton/description (std_msgs/String JSON, transient local): version, joint_names,
+            parents, rest_positions, frame_id, window_stamps_ns, changes, provisional
+            skeleton/trajectory (trajectory_msgs/MultiDOFJointTrajectory, one point per frame:
+            per joint its position and its bone's rotation from the rest pose, velocities)
+            skeleton/joints  (geometry_msgs/PoseArray, the same poses in joint_names order)
+            skeleton/confidence (std_msgs/String JSON: per-joint confidence, core/confidence.py)
             skeleton/markers (visualization_msgs/MarkerArray, only while a reader is matched:
-            SPHERE per joint, id = joint index; LINE_LIST of bones; input header)
+            SPHERE and name label per joint, id = stable joint id; LINE_LIST of bones;
+            DELETEALL first when the skeleton changed)
             skeleton/posed_points (PointCloud2, M points in the registered points' order,
             input header): the learned model posed by LBS at each fitted camera frame;
             the registration node starts its next frame from it (`live_start`)
@@ -38,15 +43,12 @@ while Alg. 2 ran) are tracked and published.
 from __future__ import annotations
 
 import collections
-import json
 import threading
 import time
 
 import numpy as np
-from geometry_msgs.msg import PoseArray
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import String
-from visualization_msgs.msg import MarkerArray
 
 from ..core.joints import JointEstimation, JointParams
 from ..core.live import ArticulatedTracker, CameraTracker, LiveJointTracker
@@ -56,11 +58,11 @@ from ..core.skeleton_model import SkeletonModel
 from ..core.structure import SkeletalStructure
 from ..params import joint_params_from_dict
 from .common import (LATCHED_QOS, STREAM_QOS, ParameterError, StampPairer, ThrottledLog, WorkingNode,
-                     declare_node_parameters, decode_or_warn, decode_registered_or_warn, release_freed_memory,
-                     run_node)
-from .conversions import (cloud_message, description_document, parse_structure, pose_array,
-                          skeleton_markers, stamp_ns)
+                     declare_node_parameters, decode_or_warn, decode_registered_or_warn, on_live_parameters,
+                     release_freed_memory, run_node)
+from .conversions import cloud_message, parse_structure, stamp_ns
 from .diagnostics import OK, WARN, NodeDiagnostics
+from .skeleton_output import SkeletonOutput, registered_hints
 from .worker import RateMeter, Worker
 
 SECTION = 'joint_estimation_node'
@@ -77,9 +79,10 @@ class JointEstimationNode(WorkingNode):
         if self.live_frames not in ('camera', 'registered'):
             raise ParameterError(f"parameter live_frames must be 'camera' or 'registered', got {self.live_frames!r}")
         self.log = ThrottledLog(self.get_logger())
-        self.description_pub = self.create_publisher(String, 'skeleton/description', LATCHED_QOS)
-        self.joints_pub = self.create_publisher(PoseArray, 'skeleton/joints', STREAM_QOS)
-        self.markers_pub = self.create_publisher(MarkerArray, 'skeleton/markers', STREAM_QOS)
+        on_live_parameters(self, SECTION, self._apply_parameters)
+        # description, joints, trajectory, confidence, markers (nodes/skeleton_output.py)
+        self.output = SkeletonOutput(self, self.joint_diameter)
+        self.markers_pub = self.output.markers_pub
         # the model posed at each fitted camera frame: the registration starts from it
         self.posed_pub = self.create_publisher(PointCloud2, 'skeleton/posed_points', STREAM_QOS)
         self._lock = threading.Lock()
@@ -89,6 +92,7 @@ class JointEstimationNode(WorkingNode):
         self.pairer = StampPairer()
         self.registered_only = collections.OrderedDict()  # stamp -> (header, registered): live input
         self.tracker = None                  # LiveJointTracker of the current model
+        self.described = None                # its DescribedSkeleton (names, version)
         self.camera = None                   # its CameraTracker (live_frames camera)
         self.model_parents = None
         self._provisional = False            # the tracked model is Step 2's, Alg. 2 still running
@@ -107,6 +111,20 @@ class JointEstimationNode(WorkingNode):
         self.create_subscription(String, 'skeleton/structure', self._on_structure, LATCHED_QOS)
         self.diagnostics = NodeDiagnostics(self, self._diagnostics)
         self.get_logger().info('waiting for skeleton/structure')
+
+    def _apply_parameters(self, values: dict, _changed: set) -> None:
+        """`ros2 param set` (parameter_docs.LIVE): the method's parameters and
+        provisional_skeleton apply from the next structure (Alg. 2 and the trackers of the
+        model it gives), the rest from the next frame. ParamsError (a ValueError) refuses."""
+        params = joint_params_from_dict(values)
+        with self._lock:
+            self.params = params
+            self.buffer_size, self.provisional_skeleton = values['buffer_size'], values['provisional_skeleton']
+            self.live_sweeps, self.live_iterations = values['live_sweeps'], values['live_iterations']
+            self.output.joint_diameter = float(values['joint_diameter'])
+            if self.tracker is not None:       # the model tracked now, from its next frame
+                self.tracker.sweeps = self.live_sweeps
+                self.camera.tracker.iterations = self.live_iterations
 
     # -- inputs ----------------------------------------------------------------------------
     def _on_rest(self, msg: PointCloud2) -> None:
@@ -250,17 +268,18 @@ class JointEstimationNode(WorkingNode):
             # registered: lossless replay publishes Alg. 2's joints for the window, as run does.
             step2 = SkeletonModel(rest, labels, parents, structure.joints, labels[:, None],
                                   np.ones((len(rest), 1)), document['joint_ids'])
-            self._serve(step2, document, stamps, frames, structure.joint_trajectories(), started, provisional=True)
+            self._serve(step2, document, stamps, frames, (rotations, translations), started, provisional=True)
         estimate = JointEstimation(self.params).fit(rest, registered, observed, structure)
         model = SkeletonModel(rest, labels, estimate.parents, estimate.joints, estimate.influences,
                               estimate.weights, document['joint_ids'])
-        self._serve(model, document, stamps, frames, estimate.joint_trajectories(), started)
+        self._serve(model, document, stamps, frames, (estimate.rotations, estimate.translations), started)
         release_freed_memory()
 
     def _serve(self, model: SkeletonModel, document: dict, stamps: list, frames: list,
-               window_joints: np.ndarray, started: float, provisional: bool = False) -> None:
-        """Publish model's description, the joints (F, J, 3) m of the window frames that have
-        none yet, then track it live (on the registered frames without joints first).
+               window_pose: tuple, started: float, provisional: bool = False) -> None:
+        """Publish model's description, the joints of the window frames that have none yet
+        (window_pose: the model's bone rotations (F, B, 3, 3) and translations (F, B, 3) at
+        them), then track it live (on the registered frames without joints first).
         provisional: Step 2's model, which Alg. 2's will replace."""
         with self._lock:
             stale = self.rest is not model.rest_points
@@ -276,15 +295,18 @@ class JointEstimationNode(WorkingNode):
         camera = CameraTracker(ArticulatedTracker(model, self.params, iterations=self.live_iterations), tracker)
         # the refinement of a provisional description lists no changes: same joints, same tree
         changes = {} if refining and not provisional else document['changes']
-        description = description_document(model, document['frame_id'], stamps, changes, provisional)
-        self.description_pub.publish(String(data=json.dumps(description)))
+        window = [(stamp, header, *self._registered_outputs(model, tracker, registered, rotations, translations))
+                  for stamp, (header, registered, _), rotations, translations in zip(stamps, frames, *window_pose)]
+        # the skeleton's confidence: each joint's median over the frames it was learned on
+        confidence = np.median([frame[-1] for frame in window], axis=0)
+        described = self.output.describe(model, document['frame_id'], stamps, changes, provisional, confidence)
         with self._lock:
             done = self.last_published
         # a frame that already has joints (live, from the previous model) is not published
         # twice: a growing skeleton's key frames can be minutes old
-        for stamp, (header, _, _), positions in zip(stamps, frames, window_joints):
+        for stamp, header, positions, hints, frame_confidence in window:
             if done is None or stamp > done:
-                self._publish_joints(header, positions, model.parents)
+                self._publish_joints(described, header, positions, hints, frame_confidence)
         in_window = set(stamps)
         with self._lock:
             # registered frames without joints that are not in the window (between key frames,
@@ -295,6 +317,7 @@ class JointEstimationNode(WorkingNode):
             catch_up = [(s, v) for s, v in self.registered_only.items()
                         if (since is None or s > since) and s not in in_window]
             self.tracker, self.camera, self.model_parents = tracker, camera, model.parents
+            self.described = described
             self._provisional = provisional
             published = [stamps[-1]] + [s for s, _ in catch_up[-1:]]
             self.last_published = max(published + [self.last_published or published[0]])
@@ -302,7 +325,7 @@ class JointEstimationNode(WorkingNode):
         self.get_logger().info(f'{model.n_joints} joints from {len(stamps)} frames in '
                                f'{time.perf_counter() - started:.1f} s ({what}); publishing live joints'
                                + (f' ({len(catch_up)} more frames tracked)' if catch_up else ''))
-        self._publish_tracked(tracker, catch_up, model.parents)
+        self._publish_tracked(tracker, described, catch_up)
 
     # -- live --------------------------------------------------------------------------------
     def _publish_live(self) -> None:
@@ -311,18 +334,31 @@ class JointEstimationNode(WorkingNode):
             if self.tracker is None:
                 return
             todo = [(s, v) for s, v in self.registered_only.items() if s > self.last_published]
-            tracker, parents = self.tracker, self.model_parents
+            tracker, described = self.tracker, self.described
             if todo:
                 self.last_published = todo[-1][0]
-        self._publish_tracked(tracker, todo, parents)
+        self._publish_tracked(tracker, described, todo)
 
-    def _publish_tracked(self, tracker, frames: list, parents) -> None:
+    def _publish_tracked(self, tracker, described, frames: list) -> None:
         """Publish tracker joints for [(stamp, (header, registered (M, 3)))] in order."""
         for _stamp, (header, registered) in frames:
             started = time.perf_counter()
-            positions = tracker.track(registered)
+            rotations, translations = tracker.fit(registered)
             self.live_ms.append(1000.0 * (time.perf_counter() - started))
-            self._publish_joints(header, positions, parents)
+            self._publish_registered(described, tracker, header, registered, rotations, translations)
+
+    def _publish_registered(self, described, tracker, header, registered, rotations, translations) -> None:
+        """Publish a registered frame's joints (see _registered_outputs)."""
+        self._publish_joints(described, header,
+                             *self._registered_outputs(described.model, tracker, registered, rotations, translations))
+
+    @staticmethod
+    def _registered_outputs(model, tracker, registered, rotations, translations) -> tuple:
+        """(positions (J, 3) m, twist hints (B, 3, 3), confidence (J,)) of a registered frame
+        (M, 3) from the model's bone transforms at it (rotations (B, 3, 3), translations
+        (B, 3)): twist and confidence from its registered points."""
+        return (tracker.joints_of(rotations, translations), registered_hints(model, registered),
+                tracker.confidence(rotations, translations, registered, corresponding=True))
 
     def _live_camera_frame(self, item) -> None:
         """Joints for one camera frame (live_frames camera), on the live Worker."""
@@ -336,7 +372,7 @@ class JointEstimationNode(WorkingNode):
                 return
             registered_stamp = newest[-1]
             registered = self.registered_only[registered_stamp][1]
-            camera, parents = self.camera, self.model_parents
+            camera, described = self.camera, self.described
             self.last_published = stamp
         started = time.perf_counter()
         camera.registered(registered_stamp, registered)      # nothing to do when already taken
@@ -348,7 +384,11 @@ class JointEstimationNode(WorkingNode):
         positions, outcome = camera.track(stamp, observed)
         self.live_fits[outcome] += 1
         self.live_ms.append(1000.0 * (time.perf_counter() - started))
-        self._publish_joints(header, positions, parents)
+        rotations, translations = camera.pose
+        # the fit's own bone rotations give the twist; the confidence is the served pose's
+        # against this frame's points (a lost frame's registered pose scores what it explains)
+        self._publish_joints(described, header, positions, rotations,
+                             camera.tracker.confidence(rotations, translations, observed, corresponding=False))
         posed = camera.posed_points()
         if posed is not None:
             self.posed_pub.publish(cloud_message(posed, header))
@@ -360,13 +400,10 @@ class JointEstimationNode(WorkingNode):
         self.log.warn('live_failed', f'live joints for the camera frame at {stamp_ns(item[0]) * 1e-9:.3f} s '
                                      f'failed: {type(error).__name__}: {error}')
 
-    def _publish_joints(self, header, positions, parents) -> None:
+    def _publish_joints(self, described, header, positions, hints, confidence) -> None:
+        """positions (J, 3) m; hints (B, 3, 3) the fit's bone rotations; confidence (J,)."""
         self.joints_rate.tick()
-        self.joints_pub.publish(pose_array(positions, header))
-        # markers only for a reader (RViz): building and serialising them is ~0.9 ms of every
-        # live frame, and a volatile topic drops what it sends unmatched anyway
-        if self.markers_pub.get_subscription_count() > 0:
-            self.markers_pub.publish(skeleton_markers(positions, parents, header, self.joint_diameter))
+        self.output.publish(described, header, positions, hints, confidence)
 
     def stop_work(self) -> None:
         """Stop Alg. 2's and the live fit's threads (not the ROS entities: destroy_node)."""

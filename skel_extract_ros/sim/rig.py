@@ -1,7 +1,7 @@
 """A skinned rig (libigl layout: mesh .obj, skeleton .tgf, weights .DMAT, key poses
 -K.Tmat) blended smoothly between its rest pose and its key poses, as an AnimatedBody.
 
-Rig facts (checked on the cow of ../shared/data/rigs/cow, see test/test_sim_sources.py):
+Rig facts (checked on a cow rig in this layout, see test/test_sim_sources.py):
 a .Tmat holds, for every bone, a 4 x 3 matrix (3 x 3 linear part over a translation row)
 applied to rest vertices as row vectors, v' = [v 1] @ T; stacked bone after bone. Bone i
 is TGF edge i (parent joint -> child joint). Several bones may start at the same joint (the

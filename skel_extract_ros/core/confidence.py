@@ -1,0 +1,60 @@
+r"""Per-joint confidence in [0, 1]: how far the data of a frame supports a published joint.
+
+The one place that defines it is `joint_confidence`; the nodes publish what it returns
+(skeleton/confidence, the markers' colours and labels; docs/contract.md) and nothing else
+computes a confidence. A better measure (e.g. from the residual of each joint's pivot,
+Eq. 10's constraint) replaces the body of `joint_confidence` or `bone_confidence` and keeps
+their signatures.
+
+The measure here is the live fit's residual of each bone's points, which every path that
+publishes joints has at hand:
+- a frame with registered points (the window, `live_frames registered`, a camera frame
+  whose own registration is in): sample m is the model point m, its residual the
+  distance between the registered point and the LBS-posed model point (they correspond);
+- a camera frame fitted to its observed points: sample n is an observed point, its bone
+  the bone of the nearest posed model point, its residual the distance to it (the camera
+  sees one side of the body: a model point on the far side has no observation, an
+  observation always has a model point).
+Bone b gets
+
+    c_b = 1 / (1 + mean_b(r^2) / HALF_RESIDUAL^2) * min(1, n_b / MIN_SAMPLES)
+
+(1 when its points sit on the data, 1/2 at an RMS residual of HALF_RESIDUAL, and 0 for a
+bone the frame did not see at all: its joint then comes from the joint term and the
+previous pose only), and joint b, which sits between bone b and its parent bone, the
+smaller of the two bones' confidences (the root joint, the root bone's centre, its bone's).
+It says how well the posed model explains the points near a joint, not whether the joint
+is anatomically right: a bone that fits its points may still pivot at the wrong place.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+# the RMS residual (m) at which a bone's confidence is one half: about twice the spread of
+# the registered points around the posed model on the sample bag's good frames
+HALF_RESIDUAL = 0.03
+# a bone with fewer samples than this in a frame is partly seen: its confidence shrinks in
+# proportion (0 samples: 0)
+MIN_SAMPLES = 10
+
+
+def bone_confidence(n_bones: int, bone_of_sample: np.ndarray, squared_residuals: np.ndarray) -> np.ndarray:
+    """(B,) confidence of each bone from samples: bone_of_sample (K,) bone index per sample,
+    squared_residuals (K,) m^2 (non-finite samples are ignored)."""
+    bone_of_sample = np.asarray(bone_of_sample, dtype=np.int64).reshape(-1)
+    squared = np.asarray(squared_residuals, dtype=np.float64).reshape(-1)
+    finite = np.isfinite(squared)
+    bone_of_sample, squared = bone_of_sample[finite], squared[finite]
+    counts = np.bincount(bone_of_sample, minlength=n_bones)[:n_bones].astype(np.float64)
+    sums = np.bincount(bone_of_sample, weights=squared, minlength=n_bones)[:n_bones]
+    mean_squared = sums / np.maximum(counts, 1.0)
+    fit = 1.0 / (1.0 + mean_squared / HALF_RESIDUAL ** 2)
+    return fit * np.minimum(1.0, counts / MIN_SAMPLES)
+
+
+def joint_confidence(parents, bone_of_sample: np.ndarray, squared_residuals: np.ndarray) -> np.ndarray:
+    """(J,) confidence in [0, 1] of each joint of a frame (joint b: between bone b and its
+    parent bone; parents (J,), -1 for the root). Samples as in bone_confidence."""
+    parents = np.asarray(parents, dtype=np.int64)
+    bones = bone_confidence(len(parents), bone_of_sample, squared_residuals)
+    return np.where(parents >= 0, np.minimum(bones, bones[np.maximum(parents, 0)]), bones)

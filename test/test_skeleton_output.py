@@ -1,0 +1,72 @@
+"""The joint node's per-frame outputs without a graph: markers, velocities, confidence."""
+import numpy as np
+from scipy.spatial.transform import Rotation
+from visualization_msgs.msg import Marker
+
+from ros_harness import T0, DT, header
+from skel_extract_ros.core.confidence import HALF_RESIDUAL, MIN_SAMPLES, bone_confidence, joint_confidence
+from skel_extract_ros.core.live import LiveJointTracker
+from skel_extract_ros.core.skeleton_model import SkeletonModel
+from skel_extract_ros.nodes.conversions import skeleton_markers
+from skel_extract_ros.nodes.skeleton_output import MAX_VELOCITY_GAP_S, FrameVelocities
+from two_bone import two_bone_sequence
+
+
+def test_markers_are_named_by_the_stable_joint_ids():
+    positions = np.array([[0.0, 0, 1], [0.2, 0, 1], [0.4, 0, 1]])
+    markers = skeleton_markers(positions, [-1, 0, 1], header(T0), 0.04, ids=[7, 3, 12],
+                               names=['joint_7', 'joint_3', 'joint_12'], confidence=[1.0, 0.5, 0.0],
+                               delete_all=True)
+    assert markers.markers[0].action == Marker.DELETEALL
+    spheres = [m for m in markers.markers if m.type == Marker.SPHERE]
+    texts = [m for m in markers.markers if m.type == Marker.TEXT_VIEW_FACING]
+    assert [m.id for m in spheres] == [m.id for m in texts] == [7, 3, 12]
+    assert [m.text for m in texts] == ['joint_7', 'joint_3', 'joint_12']
+    # green at confidence 1, red at 0
+    assert (spheres[0].color.g, spheres[0].color.r) == (1.0, 0.0)
+    assert (spheres[2].color.g, spheres[2].color.r) == (0.0, 1.0)
+    assert not any(m.action == Marker.DELETEALL for m in skeleton_markers(positions, [-1, 0, 1], header(T0)).markers)
+
+
+def test_velocities_are_finite_differences_within_one_version():
+    velocities = FrameVelocities()
+    turn = Rotation.from_rotvec([0.0, 0.0, 0.1]).as_matrix()
+    p0, r0 = np.zeros((2, 3)), np.stack([np.eye(3)] * 2)
+    assert velocities.update(1, T0, p0, r0) is None                     # nothing before it
+    linear, angular = velocities.update(1, T0 + DT, p0 + [0.01, 0, 0], np.stack([turn, np.eye(3)]))
+    np.testing.assert_allclose(linear, [[0.01 / (DT * 1e-9), 0, 0]] * 2)
+    np.testing.assert_allclose(angular, [[0, 0, 0.1 / (DT * 1e-9)], [0, 0, 0]], atol=1e-9)
+    assert velocities.update(2, T0 + 2 * DT, p0, r0) is None            # a new skeleton
+    assert velocities.update(2, T0 + DT, p0, r0) is None                # time went back
+    gap = T0 + DT + int(MAX_VELOCITY_GAP_S * 1e9) + 1
+    assert velocities.update(2, gap, p0, r0) is None                    # a gap in the data
+
+
+def test_confidence_falls_with_the_residual_and_with_unseen_bones():
+    bones = np.repeat([0, 1, 2], 20)
+    squared = np.concatenate([np.zeros(20), np.full(20, HALF_RESIDUAL ** 2), np.zeros(20)])
+    np.testing.assert_allclose(bone_confidence(4, bones, squared), [1.0, 0.5, 1.0, 0.0])
+    # joint b: the smaller of its bone's and its parent bone's
+    np.testing.assert_allclose(joint_confidence([-1, 0, 1, 2], bones, squared), [1.0, 0.5, 0.5, 0.0])
+    few = bone_confidence(1, np.zeros(MIN_SAMPLES // 2, dtype=int), np.zeros(MIN_SAMPLES // 2))
+    np.testing.assert_allclose(few, [0.5])
+    # a NaN sample is no sample
+    np.testing.assert_allclose(bone_confidence(1, [0] * 10 + [0], [0.0] * 10 + [np.nan]), [1.0])
+
+
+def test_tracker_confidence_on_registered_and_observed_points():
+    rest, registered, labels, _, _ = two_bone_sequence(n_frames=4)
+    model = SkeletonModel(rest, labels, np.array([-1, 0]), np.array([[-0.15, 0, 0], [0.0, 0, 0]]),
+                          labels[:, None], np.ones((len(rest), 1)))
+    tracker = LiveJointTracker(model)
+    rotations, translations = tracker.fit(registered[2])
+    exact = tracker.confidence(rotations, translations, registered[2], corresponding=True)
+    np.testing.assert_allclose(exact, [1.0, 1.0], atol=1e-6)
+    # the child bone's points 5 cm off: its joint (and only it) loses confidence
+    moved = registered[2].copy()
+    moved[labels == 1] += [0.0, 0.05, 0.0]
+    off = tracker.confidence(rotations, translations, moved, corresponding=True)
+    assert off[0] > 0.99 and off[1] < 0.35, off
+    # observed points of the parent bone only: the child's bone is unseen, confidence 0
+    seen = tracker.confidence(rotations, translations, registered[2][labels == 0], corresponding=False)
+    assert seen[0] > 0.99 and seen[1] == 0.0, seen
