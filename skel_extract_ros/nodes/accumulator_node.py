@@ -28,7 +28,7 @@ from std_srvs.srv import Trigger
 
 from ..core.growth import SkeletonGrowth
 from ..core.structure import StructureError, StructureParams
-from ..params import structure_params_from_dict
+from ..params import schedule_from_dict, structure_params_from_dict
 from .common import (LATCHED_QOS, STREAM_QOS, StampPairer, ThrottledLog, WorkingNode, declare_node_parameters,
                      decode_or_warn, decode_registered_or_warn, on_live_parameters, release_freed_memory, run_node)
 from .conversions import stamp_ns, structure_document
@@ -42,7 +42,7 @@ class AccumulatorNode(WorkingNode):
     def __init__(self, **kwargs):
         super().__init__('accumulator_node', **kwargs)
         self.params, values = declare_node_parameters(self, SECTION, StructureParams, structure_params_from_dict)
-        self.window_size, self.sliding, self.stride = values['window_size'], values['sliding'], values['stride']
+        self.schedule = schedule_from_dict(values)
         self.log = ThrottledLog(self.get_logger())
         on_live_parameters(self, SECTION, self._apply_parameters)
         self.structure_pub = self.create_publisher(String, 'skeleton/structure', LATCHED_QOS)
@@ -66,13 +66,13 @@ class AccumulatorNode(WorkingNode):
         self.create_subscription(PointCloud2, 'filtered_points', self._on_filtered, STREAM_QOS)
         self.create_service(Trigger, '~/extract', self._on_extract)
         self.diagnostics = NodeDiagnostics(self, self._diagnostics)
-        mode = f'sliding, every {self.stride} frames' if self.sliding else 'once'
-        self.get_logger().info(f'waiting for registered_points: windows of {self.window_size} frames ({mode})')
+        mode = f'sliding, every {self.schedule.stride} frames' if self.schedule.sliding else 'once'
+        self.get_logger().info(f'waiting for registered_points: windows of {self.schedule.window_size} frames ({mode})')
 
     def _apply_parameters(self, values: dict, _changed: set) -> None:
         """`ros2 param set` of the window (parameter_docs.LIVE): from the next registered frame."""
         with self._lock:
-            self.window_size, self.sliding, self.stride = values['window_size'], values['sliding'], values['stride']
+            self.schedule = schedule_from_dict(values)
 
     # -- inputs ----------------------------------------------------------------------------
     def _on_rest(self, msg: PointCloud2) -> None:
@@ -114,7 +114,7 @@ class AccumulatorNode(WorkingNode):
             if stamp in self.frames:
                 self.log.warn('duplicate', f'a second registered frame at {stamp * 1e-9:.3f} s: ignored')
                 return
-            if len(self.frames) >= self.window_size and stamp < next(iter(self.frames)):
+            if len(self.frames) >= self.schedule.window_size and stamp < next(iter(self.frames)):
                 return   # older than the whole (full) window
             newest = next(reversed(self.frames), None)
             self.frames[stamp] = points
@@ -122,11 +122,10 @@ class AccumulatorNode(WorkingNode):
                 # a pair completes when its later half arrives, and a fragmented cloud can be
                 # resent seconds late (reliable DDS): the window stays in stamp order, nothing lost
                 self.frames = collections.OrderedDict(sorted(self.frames.items()))
-            while len(self.frames) > self.window_size:
+            while len(self.frames) > self.schedule.window_size:
                 self.frames.popitem(last=False)
             self._since_extraction += 1
-            due = (not self._extracted_once and self._since_extraction >= self.window_size) or \
-                  (self.sliding and self._extracted_once and self._since_extraction >= self.stride)
+            due = self.schedule.due(self._since_extraction, self._extracted_once)
         if due:
             self._start_extraction('window full')
 
@@ -173,12 +172,12 @@ class AccumulatorNode(WorkingNode):
         elif running:
             level, state = OK, f'extracting the structure from {n_frames} frames'
         elif self.published == 0:
-            level, state = OK, f'collecting: {n_frames} of {self.window_size} frames'
+            level, state = OK, f'collecting: {n_frames} of {self.schedule.window_size} frames'
         else:
             level, state = OK, f'skeleton of {self.last_bones} bones published'
         return level, state, {'rate_in_hz': self.registered_rate.rate(), 'frames': n_frames,
                               'newest_stamp_ns': newest,
-                              'window_size': self.window_size, 'extracting': running,
+                              'window_size': self.schedule.window_size, 'extracting': running,
                               'extractions': self.extractions, 'published': self.published,
                               'failed': self.extractor.failed}
 
@@ -190,10 +189,10 @@ class AccumulatorNode(WorkingNode):
         try:
             update = growth.update(np.array(stamps, dtype=np.int64), window)
         except StructureError as error:
-            retry = '' if self.sliding else f'; trying again on the next {self.window_size} frames'
+            retry = '' if self.schedule.sliding else f'; trying again on the next {self.schedule.window_size} frames'
             self.get_logger().warning(f'no skeleton from {len(stamps)} frames: {error}{retry}')
             with self._lock:
-                self._extracted_once = self.sliding and self._extracted_once
+                self._extracted_once = self.schedule.sliding and self._extracted_once
             return
         structure = update.structure
         self.extractions += 1

@@ -270,8 +270,7 @@ class JointEstimationNode(WorkingNode):
                                   np.ones((len(rest), 1)), document['joint_ids'])
             self._serve(step2, document, stamps, frames, (rotations, translations), started, provisional=True)
         estimate = JointEstimation(self.params).fit(rest, registered, observed, structure)
-        model = SkeletonModel(rest, labels, estimate.parents, estimate.joints, estimate.influences,
-                              estimate.weights, document['joint_ids'])
+        model = estimate.model(rest, labels, document['joint_ids'])
         self._serve(model, document, stamps, frames, (estimate.rotations, estimate.translations), started)
         release_freed_memory()
 
