@@ -706,7 +706,7 @@ def test_live_parameters_take_effect_and_the_others_are_read_only(ros):
     assert not result.successful and node.params.omega == 0.01
     # the accumulator's window is live, its structure parameters read-only
     assert _set(ros, 'accumulator_node', window_size=5, sliding=True)[0].successful
-    assert (accumulator.window_size, accumulator.sliding) == (5, True)
+    assert (accumulator.schedule.window_size, accumulator.schedule.sliding) == (5, True)
     [result] = _set(ros, 'accumulator_node', n_clusters=5)
     assert not result.successful and 'read-only' in result.reason
     assert accumulator.params.n_clusters == 30
