@@ -6,7 +6,7 @@ joint node does it (live_frames camera).
                                [--iterations 3] [--sweeps 1] [--lag 30] [--schemes reach,bones]
                                [--work DIR]
 
-For each real clip (../shared/data, as bench_real_motion.py): simulate the bag (kept in
+For each real clip ($SKEL_SHARED_DATA, as bench_real_motion.py): simulate the bag (kept in
 --work and reused), learn the skeleton as `skel-extract run` does (SkeletonPipeline:
 registration, Steps 2-3 on the key frames; kept in --work too: empty it after changing
 those). Then the node's live

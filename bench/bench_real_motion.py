@@ -4,9 +4,9 @@ end to end, scored against the ground truth.
     python bench/bench_real_motion.py [--frames 90] [--scenes empty,room] [--only wave,cow]
                                       [--work DIR] [--score-only] [--json FILE]
 
-Subjects: every BVH clip in ../shared/data/mocap/ (real actors, on a body of capsules), the
-cow rig (../shared/data/rigs/cow, blended between its key poses) and the samba mesh sequence
-(../shared/data/samba_mesh_sequence.npz, registration only: it has no joints). Each is
+Subjects: every BVH clip in $SKEL_SHARED_DATA/mocap/ (real actors, on a body of capsules), the
+cow rig ($SKEL_SHARED_DATA/rigs/cow, blended between its key poses) and the samba mesh sequence
+($SKEL_SHARED_DATA/samba_mesh_sequence.npz, registration only: it has no joints). Each is
 rendered at 320x240 with Kinect noise, 90 frames at 30 Hz (the most active window, or the
 whole clip when shorter), in an empty scene and in a room (floor, walls, a table, a lamp).
 Walks keep their travel (towards the camera, which stays within 4.5 m); runs are put on a
@@ -22,7 +22,7 @@ camera ray, across it, and what is left once the offset is removed).
 
 `--work DIR` keeps the bags and run outputs (default: a temporary directory); with
 `--score-only` nothing is simulated or run again, the outputs in DIR are scored.
-Set SKEL_SHARED_DATA to read the data from elsewhere.
+$SKEL_SHARED_DATA is the real data directory (default: `shared/data` beside the checkout).
 """
 from __future__ import annotations
 

@@ -6,7 +6,7 @@ the camera-rate issue (rate, latency, first skeleton) and the live joints' accur
 
 For each clip (default: the five of bench/README.md's node tables: walk_normal, run_normal,
 cow, wave-both-hands_active, wave-left-hand_normal; `--only` picks among every clip of
-../shared/data as bench_real_motion.py does) 90 frames in the room, rendered as 320x240 depth
+$SKEL_SHARED_DATA as bench_real_motion.py does) 90 frames in the room, rendered as 320x240 depth
 images at 30 Hz (`simulate --scene room --depth-image`, kept in --work); then `skel-extract
 replay --realtime --loop N` as a user runs it, with the accumulator's `window_size` set to
 `--window` (a 3 s bag played N times: a 60-frame window would leave a short tracking time).

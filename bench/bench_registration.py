@@ -17,9 +17,9 @@ pip install -e .[bench]. Prints a Markdown table; `--json FILE` keeps the raw nu
 
 Sequences: the built-in subjects; `swing` (sim/stress.py: an arm hanging beside the torso
 swings up at 22 cm a frame, then across in front of it); the real captured samba mesh
-sequence (../shared/data/samba_mesh_sequence.npz, Vlasic et al. 2008) through the same
+sequence ($SKEL_SHARED_DATA/samba_mesh_sequence.npz, Vlasic et al. 2008) through the same
 virtual Kinect, its true vertex motion the ground truth. `--real` adds every motion-capture
-clip in ../shared/data/mocap/ and the cow rig, in each of `--scenes`, rendered as
+clip in $SKEL_SHARED_DATA/mocap/ and the cow rig, in each of `--scenes`, rendered as
 bench_real_motion.py renders them and segmented by the pipeline's segmentation (the rest
 pose is the first frame the subject is wholly in view; frames before it are not scored).
 Absent data is skipped. Columns: mean and p95 error over all points and frames, the worst

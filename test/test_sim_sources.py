@@ -1,5 +1,5 @@
 """The real rig (cow) and the captured mesh sequence (samba) as simulator subjects; skipped
-when ../shared/data is absent."""
+when the shared data directory (SKEL_SHARED_DATA) is absent."""
 import os
 from pathlib import Path
 
