@@ -3,6 +3,7 @@ end to end, scored against the ground truth.
 
     python bench/bench_real_motion.py [--frames 90] [--scenes empty,room] [--only wave,cow]
                                       [--work DIR] [--score-only] [--json FILE]
+                                      [--seeds 0,1,2] [--forms cloud,depth]
 
 Subjects: every BVH clip in $SKEL_SHARED_DATA/mocap/ (real actors, on a body of capsules), the
 cow rig ($SKEL_SHARED_DATA/rigs/cow, blended between its key poses) and the samba mesh sequence
@@ -15,7 +16,9 @@ treadmill (`simulate --treadmill`), since 5 m in two seconds leaves any depth ca
 its files are scored with skel_extract_ros.evaluation (the joints over the registration's
 frames: every frame without joints is a miss). Absent data is skipped.
 
-Printed: one row per subject and scene; the median of the headline figures on the tuning
+`--seeds` and `--forms` add variants of each bag (other noise seeds; the same frames as
+16UC1 depth images instead of clouds) and print the range of each subject's figures over
+them (the stability table). Printed: one row per subject and scene (and variant); the median of the headline figures on the tuning
 half (TUNING: choices are made there) and on the check half; each anatomical joint over
 the rows where it bends or travels (found, and its error split into the offset along the
 camera ray, across it, and what is left once the offset is removed).
@@ -27,6 +30,7 @@ $SKEL_SHARED_DATA is the real data directory (default: `shared/data` beside the 
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import math
 import os
@@ -78,8 +82,12 @@ def subjects(only: list) -> list:
     return found
 
 
-def simulate_and_run(name: str, source_args: list, scene: str, frames: int, work: Path) -> dict:
-    bag, out = work / f'{name}_{scene}', work / f'{name}_{scene}_out'
+def simulate_and_run(name: str, source_args: list, scene: str, frames: int, work: Path,
+                     variant: str | None = None) -> dict:
+    """Simulate the subject into a bag and `skel-extract run` it; `variant` (default the
+    scene) names the bag when source_args hold a seed or an input form."""
+    variant = variant or scene
+    bag, out = work / f'{name}_{variant}', work / f'{name}_{variant}_out'
     shutil.rmtree(bag, ignore_errors=True)
     shutil.rmtree(out, ignore_errors=True)
     done = subprocess.run([CLI, 'simulate', *source_args, '--frames', str(frames), '--scene', scene,
@@ -90,7 +98,7 @@ def simulate_and_run(name: str, source_args: list, scene: str, frames: int, work
     done = subprocess.run([CLI, 'run', str(bag), '--out', str(out)], capture_output=True, text=True)
     record = {'wall_s': time.perf_counter() - started, 'returncode': done.returncode,
               'stdout': done.stdout, 'error': done.stderr.strip().splitlines()[-1] if done.returncode else ''}
-    (work / f'{name}_{scene}_run.json').write_text(json.dumps(record))
+    (work / f'{name}_{variant}_run.json').write_text(json.dumps(record))
     return record
 
 
@@ -233,6 +241,25 @@ def summary_table(rows: list) -> str:
     return '\n'.join(lines)
 
 
+def stability_table(rows: list) -> str:
+    """Per subject and scene, over its seeds and input forms: the range of the headline
+    figures (the skeleton should not flip with the noise or the input's form)."""
+    groups = {}
+    for r in rows:
+        if r['true_joints']:
+            groups.setdefault((r['subject'], r['base_scene']), []).append(r)
+    lines = ['| subject | scene | variants | artic. recall min-max | precision min-max | tracking skill min-max |',
+             '|' + '---|' * 6]
+    for (subject, scene), chosen in groups.items():
+        def span(key):
+            values = np.array([_num(r.get(key)) for r in chosen])
+            values = values[np.isfinite(values)]
+            return f'{_fmt(float(values.min()))}-{_fmt(float(values.max()))}' if len(values) else '-'
+        lines.append(f'| {subject} | {scene} | {len(chosen)} | {span("articulated_recall")} | '
+                     f'{span("precision")} | {span("tracking_skill")} |')
+    return '\n'.join(lines)
+
+
 def per_joint_table(rows: list) -> str:
     """Each anatomical joint over the rows where it bends or travels: how often it is
     found (at 15, 10, 5 cm), and where its error lies: the mean offset along the camera ray
@@ -267,6 +294,8 @@ def main() -> int:
     parser.add_argument('--work', default=None, help='keep bags and outputs here')
     parser.add_argument('--score-only', action='store_true', help='score the outputs already in --work')
     parser.add_argument('--json', default=None, help='write the rows as JSON')
+    parser.add_argument('--seeds', default='0', help='comma-separated simulation noise seeds (stability)')
+    parser.add_argument('--forms', default='cloud', help='input forms: cloud, depth (16UC1 depth images)')
     args = parser.parse_args()
     chosen = subjects([o for o in args.only.split(',') if o])
     if not chosen:
@@ -277,21 +306,28 @@ def main() -> int:
     rows = []
     for name, source_args in chosen:
         for scene in args.scenes.split(','):
-            if not args.score_only:
-                started = time.perf_counter()
-                record = simulate_and_run(name, source_args, scene, args.frames, work)
-                print(f'{name} {scene}: run exit {record["returncode"]} in {time.perf_counter() - started:.0f} s '
-                      f'{record["error"]}', file=sys.stderr, flush=True)
-            try:
-                rows.append(score(name, scene, work))
-            except (EvaluationError, FileNotFoundError) as error:
-                print(f'{name} {scene}: cannot score: {error}', file=sys.stderr)
+            for seed, form in itertools.product(args.seeds.split(','), args.forms.split(',')):
+                # the default variant keeps the scene's name (and its bag) as before
+                variant = scene + ('' if seed == '0' else f'-seed{seed}') + ('' if form == 'cloud' else '-depth')
+                extra = (['--seed', seed] if seed != '0' else []) + (['--depth-image'] if form == 'depth' else [])
+                if not args.score_only:
+                    started = time.perf_counter()
+                    record = simulate_and_run(name, source_args + extra, scene, args.frames, work, variant)
+                    print(f'{name} {variant}: run exit {record["returncode"]} in '
+                          f'{time.perf_counter() - started:.0f} s {record["error"]}', file=sys.stderr, flush=True)
+                try:
+                    rows.append(dict(score(name, variant, work), base_scene=scene))
+                except (EvaluationError, FileNotFoundError) as error:
+                    print(f'{name} {variant}: cannot score: {error}', file=sys.stderr)
     print(table(rows))
     print()
     print(summary_table(rows))
     print()
     print(per_joint_table(rows))
     print()
+    if len(rows) > len({(r['subject'], r['base_scene']) for r in rows}):
+        print(stability_table(rows))
+        print()
     print(segmentation_table(rows))
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1, default=float))
