@@ -34,12 +34,26 @@ def split_layout(raw: np.ndarray) -> tuple:
     return raw, 1, len(raw)
 
 
-def waits_for_subject(segmentation: Segmentation, partial_frames: int) -> bool:
-    """Whether the rest pose should wait: nobody in view, or the subject only partly in
-    view (for fewer than PARTIAL_VIEW_PATIENCE_FRAMES frames so far)."""
-    if segmentation.status == STATUS_NOBODY:
-        return True
-    return segmentation.touches_border and partial_frames < PARTIAL_VIEW_PATIENCE_FRAMES
+class RestPoseGate:
+    """Which frame may become the rest pose (the offline sequence and the registration node
+    alike): one where somebody is in view, wholly (or partly, once that has lasted
+    PARTIAL_VIEW_PATIENCE_FRAMES frames), with at least a tenth of the rest pose's points
+    (100 at least) left after preprocessing."""
+
+    def __init__(self, rest_params: RestPoseParams):
+        self.min_points = max(100, rest_params.n_points // 10)
+        self.partial_frames = 0
+
+    def reason_to_wait(self, segmentation: Segmentation, n_observed: int) -> str | None:
+        """None when this frame may become the rest pose, else why not: 'nobody',
+        'partial' (the subject touches the image border) or 'few_points'."""
+        partial = segmentation.touches_border and self.partial_frames < PARTIAL_VIEW_PATIENCE_FRAMES
+        self.partial_frames += int(segmentation.touches_border)
+        if segmentation.status == STATUS_NOBODY:
+            return 'nobody'
+        if partial:
+            return 'partial'
+        return 'few_points' if n_observed < self.min_points else None
 
 
 @dataclass
@@ -90,7 +104,7 @@ class SequenceRegistration:
         self.rest_pose_ = None
         self.segmentation_ = []
         registration = None
-        partial_frames = 0
+        gate = RestPoseGate(self.rest_params)
         points, statuses, sigma2, iterations, recaptured = [], [], [], [], []
         self.observed_ = []
         M = self.rest_params.n_points
@@ -106,9 +120,7 @@ class SequenceRegistration:
             if self.keep_observed:
                 self.observed_.append(observed.astype(np.float32))
             if registration is None:
-                waiting = waits_for_subject(segmentation, partial_frames)
-                partial_frames += int(segmentation.touches_border)
-                if not waiting and len(observed) >= max(100, M // 10):
+                if gate.reason_to_wait(segmentation, len(observed)) is None:
                     started = time.perf_counter()
                     try:
                         self.rest_pose_ = RestPose.from_points(observed, self.rest_params)

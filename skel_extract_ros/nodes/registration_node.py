@@ -61,7 +61,7 @@ from ..core.preprocess import PreprocessParams, Preprocessor
 from ..core.registration import STATUS_OK, NonRigidRegistration, RegistrationParams
 from ..core.rest_pose import RestPoseError, RestPoseParams
 from ..core.segmentation import STATUS_NOBODY, SegmentationParams, SubjectSegmenter
-from ..core.sequence import PARTIAL_VIEW_PATIENCE_FRAMES, waits_for_subject
+from ..core.sequence import PARTIAL_VIEW_PATIENCE_FRAMES, RestPoseGate
 from ..depth_image import DepthDecodeError, depth_to_cloud
 from ..params import NODE_ONLY, registration_params_from_dict
 from ..pointcloud import CloudDecodeError, decode_xyz
@@ -286,7 +286,7 @@ class RegistrationNode(WorkingNode):
         self.frame_id = None
 
     def _start_registration(self) -> None:
-        self.partial_frames = 0
+        self.rest_pose_gate = RestPoseGate(self.rest_params)
         self.rest_pose = None
         self._rest_stamp = self._registered_stamp = None
         self.rest_pose_process.warm()
@@ -456,16 +456,14 @@ class RegistrationNode(WorkingNode):
         stamp, observed, segmentation = stamp_ns(frame.header), frame.observed, frame.segmentation
         if self.rest_pose is None:
             self._rest_pose_process_while_waiting(segmentation.status)
-            waiting = waits_for_subject(segmentation, self.partial_frames)
-            self.partial_frames += int(segmentation.touches_border)
-            if waiting:
-                if segmentation.status != STATUS_NOBODY:
-                    self.log.warn('partial', 'no rest pose yet: the subject is only partly in view '
-                                             f'(waiting up to {PARTIAL_VIEW_PATIENCE_FRAMES} frames for all of it)')
-                return
-            if len(observed) < max(100, self.rest_params.n_points // 10):
+            waiting = self.rest_pose_gate.reason_to_wait(segmentation, len(observed))
+            if waiting == 'partial':
+                self.log.warn('partial', 'no rest pose yet: the subject is only partly in view '
+                                         f'(waiting up to {PARTIAL_VIEW_PATIENCE_FRAMES} frames for all of it)')
+            elif waiting == 'few_points':
                 self.log.warn('no_rest', f'no rest pose yet: only {len(observed)} points after preprocessing '
                                          f'(of {segmentation.n_valid} valid); is the subject in view?')
+            if waiting is not None:
                 return
             try:
                 rest_pose = self.rest_pose_process.build(observed, self.rest_params)
