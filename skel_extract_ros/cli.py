@@ -163,9 +163,9 @@ def _cmd_run(args) -> int:
     from .bag import BagError, cloud_topics, read_cloud_frames, select_cloud_topic
     from .core.pipeline import SkeletonPipeline
     from .core.structure import StructureError
+    from .outputs import write_registered, write_skeleton
     from .params import ParamsError, load_params_file, pipeline_params
     from .progress import progress_bar
-    from .visualization import draw_skeleton_png
 
     out = Path(args.out)
     frames_slice = _parse_frame_range(args.frames)
@@ -219,13 +219,10 @@ def _cmd_run(args) -> int:
     segments = registration.segmentation_
     subject_points = np.array([s.n_subject for s in segments])
     background = np.array([s.background_fraction for s in segments])
-    np.savez_compressed(out / 'registered.npz', points=registered, stamps=stamps,
-                        status=registration.statuses_, sigma2=registration.sigma2_,
-                        recaptured=registration.recaptured_,
-                        rest_points=registration.rest_pose_.points.astype(np.float32),
-                        frame_id=np.array(frame_id), subject_points=subject_points,
-                        background_fraction=background,
-                        segmentation=np.array([s.status for s in segments]))
+    write_registered(out, registered, stamps, registration.statuses_, registration.rest_pose_.points, frame_id,
+                     sigma2=registration.sigma2_, recaptured=registration.recaptured_,
+                     subject_points=subject_points, background_fraction=background,
+                     segmentation=np.array([s.status for s in segments]))
     recaptures = int(registration.recaptured_.sum())
     print(f'registered {len(registered)} frames of {registered.shape[1]} points -> {out / "registered.npz"}'
           f'  ({", ".join(f"{n} {status}" for status, n in sorted(counts.items()))}'
@@ -243,15 +240,11 @@ def _cmd_run(args) -> int:
         result = pipeline.extract(registered)
     except StructureError as error:
         raise UserError(f'{args.input}: {error}') from None
-    document = result.model.to_json(stamps[result.frames], result.joint_positions, frame_id, result.joint_confidence)
-    (out / 'skeleton.json').write_text(json.dumps(document))
-    from .bvh_export import write_skeleton_bvh
-    write_skeleton_bvh(out / 'skeleton.bvh', result.model.joint_names, result.model.parents,
-                       result.model.rest_joints, stamps[result.frames], result.joint_positions,
-                       result.model.rest_points, result.model.labels, registered[result.frames])
-    draw_skeleton_png(out / 'skeleton.png', result.observed, registered[result.frames],
-                      result.model.labels, result.joint_positions, result.model.parents,
-                      stamps[result.frames], scene=[scenes[i] for i in result.frames])
+    model, frames = result.model, result.frames
+    write_skeleton(out, model.joint_names, model.parents, model.rest_joints, frame_id, stamps[frames],
+                   result.joint_positions, result.joint_confidence, model.rest_points, model.labels,
+                   registered=dict(enumerate(registered[frames])), observed=dict(enumerate(result.observed)),
+                   scene={row: scenes[i] for row, i in enumerate(frames)})
     total = time.perf_counter() - started
     per_frame = np.array(registration.times_.per_frame_registration) * 1000.0
     seconds = result.seconds

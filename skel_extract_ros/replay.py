@@ -500,18 +500,12 @@ def _described(received: Received) -> bool:
 
 
 def _write_files(received: Received, out: Path) -> dict:
-    from .bvh_export import write_skeleton_bvh
-    from .core.skeleton_model import skeleton_document
-    from .visualization import draw_skeleton_png
+    from .outputs import write_registered, write_skeleton
 
     stamps_ns = sorted(received.registered)
-    points = np.stack([received.registered[s] for s in stamps_ns])
-    stamps = np.array(stamps_ns, dtype=np.int64) * 1e-9
-    np.savez_compressed(out / 'registered.npz', points=points, stamps=stamps,
-                        status=np.array(['ok'] * len(stamps_ns)),
-                        rest_points=(received.rest if received.rest is not None
-                                     else np.empty((0, 3))).astype(np.float32),
-                        frame_id=np.array(received.frame_id))
+    write_registered(out, np.stack([received.registered[s] for s in stamps_ns]),
+                     np.array(stamps_ns, dtype=np.int64) * 1e-9, np.array(['ok'] * len(stamps_ns)),
+                     received.rest, received.frame_id)
     # the newest skeleton that answered frames (one described after the last frame answered
     # none), and every frame it answered (a live camera frame has no registered points); a
     # frame answered by another skeleton (before it grew) has other joints, named on
@@ -522,25 +516,16 @@ def _write_files(received: Received, out: Path) -> dict:
                       if len(p) == len(names) and received.joint_names.get(s, names) == names)
     description = next((d for d in reversed(received.descriptions) if answered_by(d)), received.description)
     answered = answered_by(description)
-    n_joints = len(description['joint_names'])
     structure = next((d for d in received.structures
                       if set(d['window_stamps_ns']) == set(description['window_stamps_ns'])), received.structure)
-    document = skeleton_document(description['joint_names'], description['parents'],
-                                 description['rest_positions'], np.array(answered) * 1e-9,
-                                 np.stack([received.joints[s] for s in answered]), description['frame_id'],
-                                 [received.confidence.get(s) for s in answered])
-    (out / 'skeleton.json').write_text(json.dumps(document))
-    with_joints = [s for s in answered if s in received.registered]
-    positions = np.stack([received.joints[s] for s in with_joints])
-    labels = np.asarray(structure['labels'])
-    registered = np.stack([received.registered[s] for s in with_joints])
-    write_skeleton_bvh(out / 'skeleton.bvh', description['joint_names'], description['parents'],
-                       description['rest_positions'], np.array(with_joints) * 1e-9, positions,
-                       received.rest, labels, registered)
-    observed = [received.filtered.get(s, np.empty((0, 3))) for s in with_joints]
-    draw_skeleton_png(out / 'skeleton.png', observed, registered,
-                      labels, positions, np.asarray(description['parents']), np.array(with_joints) * 1e-9)
-    return {'n_frames': len(stamps_ns), 'n_joints': n_joints, 'n_frames_with_joints': len(answered)}
+    write_skeleton(out, description['joint_names'], description['parents'], description['rest_positions'],
+                   description['frame_id'], np.array(answered) * 1e-9,
+                   np.stack([received.joints[s] for s in answered]), [received.confidence.get(s) for s in answered],
+                   received.rest, np.asarray(structure['labels']),
+                   registered={row: received.registered[s] for row, s in enumerate(answered) if s in received.registered},
+                   observed={row: received.filtered[s] for row, s in enumerate(answered) if s in received.filtered})
+    return {'n_frames': len(stamps_ns), 'n_joints': len(description['joint_names']),
+            'n_frames_with_joints': len(answered)}
 
 
 def _camera_delivery(received: Received, streamed_s: float) -> dict:
