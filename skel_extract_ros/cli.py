@@ -79,6 +79,7 @@ def _cmd_simulate(args) -> int:
 
 def _cmd_evaluate(args) -> int:
     from .evaluation import EvaluationError, GroundTruth, evaluate_outputs
+    from .evaluation.report import score_lines
     if not args.pred and not args.registered:
         raise UserError('nothing to evaluate: give --pred and/or --registered')
     try:
@@ -88,60 +89,8 @@ def _cmd_evaluate(args) -> int:
     if args.json:
         print(json.dumps(result, indent=2))
     else:
-        _print_scores(result, per_joint=True)
+        print('\n'.join(score_lines(result, per_joint=True)))
     return 0
-
-
-def _cm(value) -> str:
-    return '-' if value is None or not np.isfinite(value) else f'{100 * value:.1f}'
-
-
-def _ratio(value) -> str:
-    return '-' if value is None or not np.isfinite(value) else f'{value:.2f}'
-
-
-def _print_scores(result: dict, per_joint: bool) -> None:
-    """The scores of `evaluation.evaluate_outputs`, the headline figures first."""
-    if 'joints' in result:
-        j = result['joints']
-        print(f'joints: {j["n_predicted"]} predicted, {j["n_matched"]} of {j["n_ground_truth"]} true matched '
-              f'(recall {j["recall"]:.2f}, precision {j["precision"]:.2f}, threshold {_cm(j["threshold_m"])} cm); '
-              f'frames {j["n_frames"]} scored from frame {j["n_frames_before_start"]}, coverage '
-              f'{100 * j["frame_coverage"]:.0f} %' + (f', {j["n_repeated_frames"]} repeated stamps'
-                                                      if j['n_repeated_frames'] else ''))
-        print(f'  bending joints ({j["n_articulated"]}, >= 25 deg): recall {_ratio(j["articulated_recall"])} '
-              f'(within 10 cm {_ratio(j["articulated_recall_10cm"])}, 5 cm {_ratio(j["articulated_recall_5cm"])}); '
-              f'moving joints ({j["n_moving"]}, >= 10 cm): recall {_ratio(j["moving_recall"])}, '
-              f'tracking skill {_ratio(j["tracking_skill"])} (0 = holding each still)')
-        print(f'  error {_cm(j["mean_error_m"])} cm, offset removed {_cm(j["normalized_error_m"])} cm; '
-              f'motion skill {_ratio(j["motion_skill"])}; non-finite {100 * j["nonfinite_fraction"]:.1f} %')
-        if j['missed_articulated']:
-            print(f'  bending joints not found: {", ".join(j["missed_articulated"])}')
-        if j['missed_moving']:
-            print(f'  moving joints not tracked: {", ".join(j["missed_moving"])}')
-        if per_joint:
-            print('  true joint      <- predicted   error / offset removed / along ray / across (cm)')
-            for row in j['per_joint']:
-                kind = ' bends' if row['articulated'] else ''
-                kind += f' moves {_cm(row["travel_m"])} cm' if row['moving'] else ''
-                if not row['found']:
-                    print(f'  {row["ground_truth"]:>14s} <- not found{kind}')
-                    continue
-                print(f'  {row["ground_truth"]:>14s} <- {row["predicted"]:<10s} {_cm(row["error_m"])} / '
-                      f'{_cm(row["normalized_error_m"])} / {_cm(row["offset_along_ray_m"])} / '
-                      f'{_cm(row["offset_across_ray_m"])}{kind}')
-    if 'registration' in result:
-        r = result['registration']
-        drift = '  '.join(f'@{k} {v:.4f}' for k, v in r['drift_m'].items())
-        print(f'registration: mean_error_m {r["mean_error_m"]:.4f}  p95_error_m {r["p95_error_m"]:.4f}  '
-              f'worst frame {r["worst_frame_error_m"]:.4f} (p95 {r["worst_frame_p95_m"]:.4f})  '
-              f'drift {drift or "-"}  coverage {r["coverage"]:.2f}  non-finite '
-              f'{100 * r["nonfinite_fraction"]:.1f} %  ({r["n_points"]} points, {r["n_frames"]} frames'
-              + (f', scored from frame {r["n_frames_before_start"]}' if r['n_frames_before_start'] else '') + ')')
-        parts = sorted(r['per_part'].items(), key=lambda kv: -kv[1]['mean_error_m'])
-        if parts:
-            print('  worst parts: ' + ', '.join(f'{name} {v["mean_error_m"]:.3f} (worst frame '
-                                                f'{v["worst_frame_error_m"]:.3f})' for name, v in parts[:4]))
 
 
 def _parse_frame_range(text: str | None):
@@ -261,6 +210,7 @@ def _cmd_run(args) -> int:
 def _score_if_simulated(bag: Path, out: Path) -> None:
     """A bag made by `simulate` carries its ground truth (gt.npz): say how `out` scores."""
     from .evaluation import EvaluationError, GroundTruth, evaluate_outputs
+    from .evaluation.report import score_lines
     if not (bag / 'gt.npz').is_file():
         return
     try:
@@ -271,7 +221,7 @@ def _score_if_simulated(bag: Path, out: Path) -> None:
         print(f'cannot score against {bag / "gt.npz"}: {error}', file=sys.stderr)
         return
     print(f'against the ground truth beside the bag ({bag / "gt.npz"}):')
-    _print_scores(result, per_joint=False)
+    print('\n'.join(score_lines(result, per_joint=False)))
 
 
 def _cmd_replay(args) -> int:
