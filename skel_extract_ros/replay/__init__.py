@@ -25,7 +25,6 @@ points of a frame: the registered frames with joints.
 """
 from __future__ import annotations
 
-import json
 import os
 import shutil
 import signal
@@ -33,63 +32,15 @@ import subprocess
 import sys
 import threading
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-NODES = ('registration_node', 'accumulator_node', 'joint_estimation_node')
-# (relative topic, message type, latched)
-OUTPUT_TOPICS = (
-    ('registered_points', 'sensor_msgs/msg/PointCloud2', False),
-    ('filtered_points', 'sensor_msgs/msg/PointCloud2', False),
-    ('rest_points', 'sensor_msgs/msg/PointCloud2', True),
-    ('skeleton/structure', 'std_msgs/msg/String', True),
-    ('skeleton/description', 'std_msgs/msg/String', True),
-    ('skeleton/joints', 'geometry_msgs/msg/PoseArray', False),
-    ('skeleton/trajectory', 'trajectory_msgs/msg/MultiDOFJointTrajectory', False),
-    ('skeleton/confidence', 'std_msgs/msg/String', False),
-    ('skeleton/markers', 'visualization_msgs/msg/MarkerArray', False),
-    ('skeleton/posed_points', 'sensor_msgs/msg/PointCloud2', False),
-    ('/diagnostics', 'diagnostic_msgs/msg/DiagnosticArray', False),     # every node's health, 1 Hz
-)
-
-RECORDED_ONLY = ('skeleton/markers', 'skeleton/trajectory')
-
+from .recording import NODES, OUTPUT_TOPICS, Received, _Recorder, _ros_type
+from .summary import _camera_delivery, _latencies, _write_files
 
 class ReplayError(RuntimeError):
     """Replay could not finish; the message is one line for the user."""
-
-
-@dataclass
-class Received:
-    """What came back from the nodes, keyed by header stamp (ns); times are perf_counter s."""
-
-    published_at: dict = field(default_factory=dict)      # input stamp -> publish time
-    filtered: dict = field(default_factory=dict)          # stamp -> (N, 3)
-    filtered_at: dict = field(default_factory=dict)
-    registered: dict = field(default_factory=dict)        # stamp -> (M, 3)
-    registered_at: dict = field(default_factory=dict)
-    joints: dict = field(default_factory=dict)            # stamp -> (J, 3), last received
-    joint_names: dict = field(default_factory=dict)       # stamp -> its joints' names (skeleton/confidence)
-    confidence: dict = field(default_factory=dict)        # stamp -> (J,) its joints' confidence
-    structures: list = field(default_factory=list)        # every skeleton/structure, in order
-    descriptions: list = field(default_factory=list)      # every skeleton/description, in order
-    joints_at: dict = field(default_factory=dict)
-    rest: np.ndarray | None = None
-    structure: dict | None = None
-    description: dict | None = None
-    description_at: float | None = None                   # when the first one came: tracking from then
-    frame_id: str = ''
-    counts: dict = field(default_factory=dict)            # topic -> messages
-    accumulator: dict = field(default_factory=dict)       # its newest /diagnostics values (str)
-    registration: dict = field(default_factory=dict)      # the registration node's, the same
-
-
-def _ros_type(name: str):
-    package, _, message = name.split('/')
-    module = __import__(f'{package}.msg', fromlist=[message])
-    return getattr(module, message)
 
 
 def use_large_message_profile() -> None:
@@ -100,7 +51,7 @@ def use_large_message_profile() -> None:
     FASTRTPS_DEFAULT_PROFILES_FILE to the packaged 4 MB profile unless it or
     FASTDDS_DEFAULT_PROFILES_FILE is set; call before rclpy.init (Fast DDS reads it once),
     the nodes started after inherit it."""
-    from .params import fastdds_profile_file
+    from ..params import fastdds_profile_file
     profile = fastdds_profile_file()
     if profile is not None and not (os.environ.get('FASTRTPS_DEFAULT_PROFILES_FILE')
                                     or os.environ.get('FASTDDS_DEFAULT_PROFILES_FILE')):
@@ -157,93 +108,10 @@ def _log_tail(path: Path, lines: int = 3) -> str:
         return ''
 
 
-class _Recorder:
-    """rclpy node: publishes the input clouds, records and decodes every output."""
-
-    def __init__(self, node, writer, store, received: Received, depth_image: bool = False,
-                 lossless: bool = True):
-        from rclpy.serialization import deserialize_message
-
-        from .nodes.common import LATCHED_QOS, SENSOR_QOS, STREAM_QOS
-        input_qos = STREAM_QOS if lossless else SENSOR_QOS     # realtime: as a camera driver
-        self.node, self.writer, self.received = node, writer, received
-        self._deserialize = deserialize_message
-        self.condition = threading.Condition()
-        if depth_image:
-            self.publisher = node.create_publisher(_ros_type('sensor_msgs/msg/Image'), 'depth/image', input_qos)
-            self.info_publisher = node.create_publisher(_ros_type('sensor_msgs/msg/CameraInfo'),
-                                                        'depth/camera_info', input_qos)
-        else:
-            self.publisher = node.create_publisher(_ros_type('sensor_msgs/msg/PointCloud2'), 'points', input_qos)
-            self.info_publisher = None
-        self.connections = {}
-        for topic, type_name, latched in OUTPUT_TOPICS:
-            resolved = node.resolve_topic_name(topic)
-            self.connections[topic] = writer.add_connection(resolved, type_name, typestore=store)
-            node.create_subscription(_ros_type(type_name), topic,
-                                     lambda raw, t=topic, n=type_name: self._on_message(t, n, raw),
-                                     LATCHED_QOS if latched else STREAM_QOS, raw=True)
-
-    def _on_message(self, topic: str, type_name: str, raw: bytes) -> None:
-        from .nodes.conversions import pose_array_positions, stamp_ns
-        from .pointcloud import decode_xyz
-        now = time.perf_counter()
-        self.writer.write(self.connections[topic], time.time_ns(), raw)
-        # markers, trajectory and confidence are recorded only: the files do not need them
-        msg = None if topic in RECORDED_ONLY else self._deserialize(raw, _ros_type(type_name))
-        r = self.received
-        with self.condition:
-            r.counts[topic] = r.counts.get(topic, 0) + 1
-            if topic == 'filtered_points':
-                stamp = stamp_ns(msg.header)
-                r.filtered[stamp], r.filtered_at[stamp] = decode_xyz(msg), now
-            elif topic == 'registered_points':
-                stamp = stamp_ns(msg.header)
-                r.registered[stamp], r.registered_at[stamp] = decode_xyz(msg), now
-                r.frame_id = msg.header.frame_id
-            elif topic == 'rest_points':
-                r.rest = decode_xyz(msg, dtype=np.float64)
-            elif topic == 'skeleton/structure':
-                r.structure = json.loads(msg.data)
-                r.structures.append(r.structure)
-            elif topic == 'skeleton/description':
-                r.description = json.loads(msg.data)
-                r.descriptions.append(r.description)
-                if r.description_at is None:
-                    r.description_at = now
-            elif topic == 'skeleton/joints':
-                stamp = stamp_ns(msg.header)
-                r.joints[stamp], r.joints_at[stamp] = pose_array_positions(msg), now
-            elif topic == 'skeleton/confidence':
-                # which skeleton's joints a frame has: a PoseArray says nothing of it
-                document = json.loads(msg.data)
-                r.joint_names[int(document['stamp_ns'])] = document['joint_names']
-                r.confidence[int(document['stamp_ns'])] = document['confidence']
-            elif topic == '/diagnostics':
-                for status in msg.status:
-                    if status.name.endswith('/accumulator_node'):
-                        r.accumulator = {kv.key: kv.value for kv in status.values}
-                    elif status.name.endswith('/registration_node'):
-                        r.registration = {kv.key: kv.value for kv in status.values}
-            self.condition.notify_all()
-
-    def wait_for(self, predicate, timeout: float, alive=None) -> bool:
-        deadline = time.monotonic() + timeout
-        with self.condition:
-            while not predicate():
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
-                    return False
-                if alive is not None:
-                    alive()
-                self.condition.wait(min(remaining, 0.2))
-        return True
-
-
 def _held_messages(input_path: Path, topic: str) -> list:
     """The raw messages of `topic`, in memory (for passes played backwards); ReplayError when
     they would take more than half the memory the system has available."""
-    from .bag import _raw_messages
+    from ..bag import _raw_messages
     budget = _available_memory_bytes() // 2
     held, size = [], 0
     for _time, raw in _raw_messages(input_path, topic):
@@ -293,10 +161,10 @@ def replay(input_path, out, rate: float = 1.0, topic: str | None = None, params_
     from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
     from std_srvs.srv import Trigger
 
-    from .nodes.conversions import stamp_ns
+    from ..nodes.conversions import stamp_ns
 
-    from .bag import _raw_messages, camera_info_topic, cloud_topics, is_depth_topic, select_cloud_topic, typestore
-    from .params import default_params_file, load_params_file
+    from ..bag import _raw_messages, camera_info_topic, cloud_topics, is_depth_topic, select_cloud_topic, typestore
+    from ..params import default_params_file, load_params_file
 
     input_path, out = Path(input_path), Path(out)
     if rate < 0:
@@ -499,85 +367,3 @@ def _described(received: Received) -> bool:
                                  set(description['window_stamps_ns']) == set(structure['window_stamps_ns']))
 
 
-def _write_files(received: Received, out: Path) -> dict:
-    from .outputs import write_registered, write_skeleton
-
-    stamps_ns = sorted(received.registered)
-    write_registered(out, np.stack([received.registered[s] for s in stamps_ns]),
-                     np.array(stamps_ns, dtype=np.int64) * 1e-9, np.array(['ok'] * len(stamps_ns)),
-                     received.rest, received.frame_id)
-    # the newest skeleton that answered frames (one described after the last frame answered
-    # none), and every frame it answered (a live camera frame has no registered points); a
-    # frame answered by another skeleton (before it grew) has other joints, named on
-    # skeleton/confidence, and is left out
-    def answered_by(description):
-        names = description['joint_names']
-        return sorted(s for s, p in received.joints.items()
-                      if len(p) == len(names) and received.joint_names.get(s, names) == names)
-    description = next((d for d in reversed(received.descriptions) if answered_by(d)), received.description)
-    answered = answered_by(description)
-    structure = next((d for d in received.structures
-                      if set(d['window_stamps_ns']) == set(description['window_stamps_ns'])), received.structure)
-    write_skeleton(out, description['joint_names'], description['parents'], description['rest_positions'],
-                   description['frame_id'], np.array(answered) * 1e-9,
-                   np.stack([received.joints[s] for s in answered]), [received.confidence.get(s) for s in answered],
-                   received.rest, np.asarray(structure['labels']),
-                   registered={row: received.registered[s] for row, s in enumerate(answered) if s in received.registered},
-                   observed={row: received.filtered[s] for row, s in enumerate(answered) if s in received.filtered})
-    return {'n_frames': len(stamps_ns), 'n_joints': len(description['joint_names']),
-            'n_frames_with_joints': len(answered)}
-
-
-def _camera_delivery(received: Received, streamed_s: float) -> dict:
-    """What a camera user got: frames published, frames with joints (and their rate over the
-    streaming time), frames without, the seconds from the first camera frame to the first
-    skeleton/description (NaN without one), and the latency cloud published -> joints received,
-    median / p95 in ms, over the live frames: those published once the skeleton existed (the
-    first skeleton/description received). The frames before it that got joints (the
-    structure's window and the learning window's other registered frames, which Alg. 2 and
-    the registered pose answer seconds later) are counted, not timed."""
-    published = received.published_at
-    with_joints = [s for s in published if s in received.joints_at]
-    tracking_from = received.description_at
-    live = ([s for s in with_joints if published[s] >= tracking_from] if tracking_from is not None else [])
-    latency = [1000 * (received.joints_at[s] - published[s]) for s in live]
-    first_skeleton_s = (tracking_from - min(published.values())
-                        if tracking_from is not None and published else float('nan'))
-    return {'published': len(published), 'with_joints': len(with_joints), 'first_skeleton_s': first_skeleton_s,
-            'without_joints': len(published) - len(with_joints),
-            'joints_hz': len(with_joints) / streamed_s if streamed_s > 0 else float('nan'),
-            'live_frames': len(live),
-            'latency_ms_median': float(np.median(latency)) if latency else float('nan'),
-            'latency_ms_p95': float(np.percentile(latency, 95)) if latency else float('nan'),
-            'tracking': _tracking_delivery(received, tracking_from) if live else None}
-
-
-def _tracking_delivery(received: Received, tracking_from: float) -> dict:
-    """From the first camera frame published once the skeleton existed (perf_counter s of
-    the first skeleton/description) to the last one published: frames published, passed on
-    by the camera stage (filtered_points), with joints, and the joints rate over that time
-    (Hz), the rate a user gets once the skeleton is tracked."""
-    published = {s: t for s, t in received.published_at.items() if t >= tracking_from}
-    span_s = max(published.values()) - min(published.values())
-    with_joints = sum(s in received.joints_at for s in published)
-    return {'published': len(published), 'filtered': sum(s in received.filtered_at for s in published),
-            'with_joints': with_joints, 'seconds': span_s,
-            'camera_hz': (len(published) - 1) / span_s if span_s > 0 else float('nan'),
-            'joints_hz': with_joints / span_s if span_s > 0 else float('nan')}
-
-
-def _latencies(received: Received, realtime: bool) -> dict:
-    """Per-node latency (ms): registration = cloud published -> registered_points received;
-    lossless only, joints (live frames) = registered_points received -> skeleton/joints
-    received. Realtime joints answer the camera frame, not its registration (often before
-    it): their latency is the camera delivery's (_camera_delivery)."""
-    registration = [1000 * (received.registered_at[s] - received.published_at[s])
-                    for s in received.registered_at if s in received.published_at]
-    window = set(received.structure['window_stamps_ns']) if received.structure else set()
-    live = [] if realtime else [1000 * (received.joints_at[s] - received.registered_at[s])
-                                for s in received.joints_at if s in received.registered_at and s not in window]
-    result = {}
-    for name, values in (('registration_ms', registration), ('live_joints_ms', live)):
-        if values:
-            result[name] = {'median': float(np.median(values)), 'worst': float(np.max(values)), 'n': len(values)}
-    return result
