@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from skel_extract_ros.core.growth import SkeletonGrowth, aligned_poses, farthest_poses
+from skel_extract_ros.core.growth import GrowthSchedule, SkeletonGrowth, aligned_poses, farthest_poses
 from skel_extract_ros.core.structure import StructureError, StructureParams
 
 LEFT_JOINT, RIGHT_JOINT = np.array([-0.3, 0.0, 0.0]), np.array([0.3, 0.0, 0.0])
@@ -119,3 +119,13 @@ def test_previous_labels_must_match_the_rest_points():
     rest, frames = three_part_chain(10, 'left')
     with pytest.raises(ValueError, match='previous_labels'):
         extract_structure(rest, frames, StructureParams(n_clusters=12), previous_labels=np.zeros(5, dtype=int))
+
+
+def test_the_growth_schedule_learns_when_the_window_is_full_and_then_every_stride_when_sliding():
+    once = GrowthSchedule(window_size=5)
+    assert [once.due(n, False) for n in range(1, 7)] == [False] * 4 + [True, True]
+    assert not any(once.due(n, True) for n in range(1, 100)), 'without sliding: learned once'
+    sliding = GrowthSchedule(window_size=5, sliding=True, stride=3)
+    assert [sliding.due(n, True) for n in range(1, 5)] == [False, False, True, True]
+    with pytest.raises(ValueError, match='window_size'):
+        GrowthSchedule(window_size=1)
