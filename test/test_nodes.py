@@ -64,7 +64,7 @@ def test_registration_node_topics_headers_and_qos(ros, arm, reliability):
     late = ros.listen('rest_points', PointCloud2, LATCHED_QOS)
     ros.wait(lambda: len(late) == 1, what='latched rest_points')
     assert decode_xyz(late[0], dtype=np.float64).shape == (600, 3)
-    assert node.skipped == 0
+    assert node.stages.skipped == 0
 
 
 def test_registration_node_registers_as_the_offline_pipeline(ros, arm):
@@ -143,10 +143,10 @@ def test_registration_node_survives_every_bad_input(ros, arm):
     for name, bad, warning in _bad_clouds(arm.clouds[1]):
         stamp += DT
         bad.header = header(stamp)
-        done = node.processed
+        done = node.stages.processed
         pub.publish(bad)
         # one at a time: with queue_size 1 a good cloud right behind would replace the bad one
-        ros.wait(lambda: node.processed > done, what=f'the {name} cloud handled')
+        ros.wait(lambda: node.stages.processed > done, what=f'the {name} cloud handled')
         stamp += DT
         pub.publish(cloud(arm.clouds[2], stamp))
         ros.wait(lambda: stamp in stamps_of(registered), what=f'a good frame after the {name} cloud')
@@ -163,7 +163,7 @@ def test_registration_node_survives_every_bad_input(ros, arm):
     assert rests[-1].header.frame_id == 'other_frame' and registered[-1].header.frame_id == 'other_frame'
     assert any('frame_id changed' in m for m in ros.warnings('registration_node'))
     assert len(filtered) >= len(registered)
-    assert node.skipped == 0
+    assert node.stages.skipped == 0
 
 
 def test_registration_reset_service_builds_a_new_rest_pose(ros, arm):
@@ -190,22 +190,22 @@ def test_registration_runs_nicer_once_the_first_window_is_learned_and_survives_i
     base = os.getpriority(os.PRIO_PROCESS, 0)
     pub.publish(cloud(arm.clouds[0], arm.stamps_ns[0]))
     ros.wait(lambda: len(registered) == 1, what='the first frame')
-    assert node.registration_process.nice == base           # learning: full priority
+    assert node.stages.registration_process.nice == base           # learning: full priority
     # what the accumulator latches once its first window is learned (the joint node's
     # skeleton/description does the same, for a joint node started without an accumulator)
     ros.publisher('skeleton/structure', String, LATCHED_QOS).publish(String(data='{}'))
-    ros.wait(lambda: node.registration_process.nice == min(base + 7, 19), what='the lowered priority')
-    assert node.registration_process.in_idle_class            # registration_sched_idle's default
+    ros.wait(lambda: node.stages.registration_process.nice == min(base + 7, 19), what='the lowered priority')
+    assert node.stages.registration_process.in_idle_class            # registration_sched_idle's default
     # the child dies (out of memory, killed): said, a new child, a new rest pose
-    os.kill(node.registration_process.pid, signal.SIGKILL)
+    os.kill(node.stages.registration_process.pid, signal.SIGKILL)
     pub.publish(cloud(arm.clouds[1], arm.stamps_ns[1]))
     ros.wait(lambda: any('registration process ended' in m for m in ros.warnings('registration_node')),
              what='the line about the dead child')
     pub.publish(cloud(arm.clouds[2], arm.stamps_ns[2]))
     ros.wait(lambda: len(rests) == 2 and len(registered) == 2, what='a new rest pose and frame')
     assert stamps_of(rests)[-1] == stamps_of(registered)[-1] == arm.stamps_ns[2]
-    assert node.registration_process.nice == base            # learning the new one first
-    assert not node.registration_process.in_idle_class
+    assert node.stages.registration_process.nice == base            # learning the new one first
+    assert not node.stages.registration_process.in_idle_class
     assert ros.spinning()
 
 
@@ -222,24 +222,24 @@ def test_registration_node_registers_the_first_window_in_order_then_the_newest(r
     def burst(first, n, paced=False):
         stamps = [int(arm.stamps_ns[0]) + i * step for i in range(first, first + n)]
         for i, stamp in enumerate(stamps, first):
-            handled = node.camera.processed
+            handled = node.stages.camera.processed
             pub.publish(cloud(arm.clouds[i % 8], stamp))
             if paced:
-                ros.wait(lambda: node.camera.processed > handled, what='the camera stage taking the cloud')
+                ros.wait(lambda: node.stages.camera.processed > handled, what='the camera stage taking the cloud')
         return stamps
     # learning: clouds far faster than registration (the rest pose alone takes seconds), but
     # each one taken by the camera stage before the next (it keeps only the newest cloud: an
     # unpaced burst on a loaded machine reached it 4 times of 20, which tests nothing here);
     # the first window's frames are kept in order and the newer ones skipped
     first = burst(0, 20, paced=True)
-    ros.wait(lambda: node.processed + node.skipped == 20, what='every cloud processed or skipped')
-    ros.wait(lambda: len(registered) == node.registrar.processed, what='every registered cloud published')
+    ros.wait(lambda: node.stages.processed + node.stages.skipped == 20, what='every cloud processed or skipped')
+    ros.wait(lambda: len(registered) == node.stages.registration.processed, what='every registered cloud published')
     learned = stamps_of(registered)
     # the rest pose's frame, then the 4 queued: in order, not the newest
-    assert node.camera.processed == 20 > 1 + 4      # more than the registration may keep
+    assert node.stages.camera.processed == 20 > 1 + 4      # more than the registration may keep
     assert len(learned) == 1 + 4
     assert learned == sorted(learned) and first[-1] not in learned
-    assert node.registrar.dropped > 0
+    assert node.stages.registration.dropped > 0
     # before a skeleton exists nothing else uses a subject cloud: the camera stage segments
     # (and publishes) only what the registration takes, and skips the rest undecoded
     ros.wait(lambda: len(filtered) == len(learned), what='filtered_points of the registered clouds')
@@ -248,16 +248,16 @@ def test_registration_node_registers_the_first_window_in_order_then_the_newest(r
              what='the skip warning while learning')
     # the first window is learned: the newest frames from now on (queue_size 1)
     ros.publisher('skeleton/structure', String, LATCHED_QOS).publish(String(data='{}'))
-    ros.wait(lambda: node.registrar.keep == 'newest' and node.registrar.capacity == 1, what='queue_size')
+    ros.wait(lambda: node.stages.registration.keep == 'newest' and node.stages.registration.capacity == 1, what='queue_size')
     # (no joint node will describe the skeleton: the camera stage serves every cloud again,
     # whether the registration takes it or not; how many it takes depends on the machine)
-    filtered_before, taken_before = len(filtered), node.camera.processed
+    filtered_before, taken_before = len(filtered), node.stages.camera.processed
     second = burst(20, 20)
-    ros.wait(lambda: node.processed + node.skipped == 40, what='every cloud processed or skipped')
+    ros.wait(lambda: node.stages.processed + node.stages.skipped == 40, what='every cloud processed or skipped')
     ros.wait(lambda: second[-1] in stamps_of(registered), what='the newest cloud registered')
     assert stamps_of(registered) == sorted(stamps_of(registered))     # in order, throughout
     ros.wait(lambda: second[-1] in stamps_of(filtered), what='the newest cloud on filtered_points')
-    ros.wait(lambda: len(filtered) - filtered_before == node.camera.processed - taken_before,
+    ros.wait(lambda: len(filtered) - filtered_before == node.stages.camera.processed - taken_before,
              what='filtered_points of every cloud the camera stage took')
     assert set(stamps_of(registered)) <= set(stamps_of(filtered))
 
@@ -285,29 +285,29 @@ def test_registration_starts_from_the_newest_posed_model_of_the_joint_node(ros, 
     register(1)
     # not newer than the last registered frame: from that frame, as Alg. 1
     posed_pub.publish(cloud_message(expected[1], header(int(arm.stamps_ns[1]))))
-    ros.wait(lambda: node._posed is not None, what='the posed model')
+    ros.wait(lambda: node.stages.posed is not None, what='the posed model')
     register(2)
-    assert node.registered_from_live_pose == 0
+    assert node.stages.registered_from_live_pose == 0
     # the pose of frame 6 (as the live fit gives it), then frame 7: started from it
     posed_pub.publish(cloud_message(expected[6], header(int(arm.stamps_ns[6]))))
-    ros.wait(lambda: node._posed[0] == arm.stamps_ns[6], what='the newer posed model')
+    ros.wait(lambda: node.stages.posed[0] == arm.stamps_ns[6], what='the newer posed model')
     register(7)
-    assert node.registered_from_live_pose == 1
+    assert node.stages.registered_from_live_pose == 1
     np.testing.assert_allclose(decode_xyz(registered[-1]), expected[7], atol=5e-3)
     # another model's size: ignored (the frame is registered from frame 7)
     posed_pub.publish(cloud_message(expected[6][:-1], header(int(arm.stamps_ns[7]) + DT)))
-    ros.wait(lambda: node._posed[1].shape[0] == len(expected[6]) - 1, what='the odd posed model')
+    ros.wait(lambda: node.stages.posed[1].shape[0] == len(expected[6]) - 1, what='the odd posed model')
     pub.publish(cloud(arm.clouds[6], int(arm.stamps_ns[7]) + 2 * DT))
     ros.wait(lambda: stamps_of(registered)[-1] == int(arm.stamps_ns[7]) + 2 * DT, what='one more frame')
     # not finite: warned, ignored
     broken = expected[6].copy()
     broken[5] = np.nan
     posed_pub.publish(cloud_message(broken, header(int(arm.stamps_ns[7]) + 3 * DT)))
-    ros.wait(lambda: node._posed[0] == int(arm.stamps_ns[7]) + 3 * DT, what='the broken posed model')
+    ros.wait(lambda: node.stages.posed[0] == int(arm.stamps_ns[7]) + 3 * DT, what='the broken posed model')
     pub.publish(cloud(arm.clouds[5], int(arm.stamps_ns[7]) + 4 * DT))
     ros.wait(lambda: stamps_of(registered)[-1] == int(arm.stamps_ns[7]) + 4 * DT, what='a frame after it')
     assert any('posed_points with non-finite' in m for m in ros.warnings('registration_node'))
-    assert node.registered_from_live_pose == 1 and ros.spinning()
+    assert node.stages.registered_from_live_pose == 1 and ros.spinning()
 
 
 def _publish_two_bone(ros, rest, frames, start=0):

@@ -5,7 +5,8 @@ import pytest
 
 from skel_extract_ros.core.segmentation import (STATUS_NOBODY, STATUS_SUBJECT, SegmentationParams,
                                                 SubjectSegmenter)
-from skel_extract_ros.core.sequence import SequenceRegistration, split_layout
+from skel_extract_ros.core.sequence import SequenceRegistration
+from skel_extract_ros.core.stream import split_layout
 from skel_extract_ros.depth_image import (DepthDecodeError, back_project, decode_depth, depth_to_cloud,
                                           encode_depth)
 from skel_extract_ros.sim import generate_sequence

@@ -63,12 +63,12 @@ def check_against_offline(sequence, filtered, registered, clouds):
 
 
 def test_node_in_a_room_waits_for_the_subject_and_registers_only_it(ros, walk_in, monkeypatch):
-    from skel_extract_ros.nodes import registration_node as module
+    from skel_extract_ros.nodes import registration_process as module
     # the rest pose process ends at the first frame with nobody in view, starts again when
     # the subject moves in
     monkeypatch.setattr(module, 'REST_POSE_IDLE_RELEASE_S', 0.0)
     node = registration_node(ros)
-    assert node.rest_pose_process.is_warm
+    assert node.stages.rest_pose_process.is_warm
     registered = ros.listen('registered_points', PointCloud2, STREAM_QOS)
     filtered = ros.listen('filtered_points', PointCloud2, STREAM_QOS)
     rests = ros.listen('rest_points', PointCloud2, LATCHED_QOS)
@@ -78,13 +78,13 @@ def test_node_in_a_room_waits_for_the_subject_and_registers_only_it(ros, walk_in
         pub.publish(cloud(points, stamp))
         # one at a time: the node publishes filtered_points before it registers, and a
         # cloud right behind would replace a frame still waiting for the registration
-        ros.wait(lambda: len(filtered) == i + 1 and node.processed == i + 1, what=f'frame {i} handled')
+        ros.wait(lambda: len(filtered) == i + 1 and node.stages.processed == i + 1, what=f'frame {i} handled')
     ros.wait(lambda: len(rests) == 1, what='rest pose')
     # nobody in view at first: said (throttled), nothing registered, no rest pose from the room
     assert any('nobody in view' in line for line in node.log.history)
     assert len(decode_xyz(filtered[0])) == 0
     # ended with nobody in view, started again when the subject came, ended with its rest pose
-    assert node.rest_pose_process.starts >= 2 and not node.rest_pose_process.is_warm
+    assert node.stages.rest_pose_process.starts >= 2 and not node.stages.rest_pose_process.is_warm
     check_against_offline(walk_in, filtered, registered, walk_in.clouds)
     # the camera moved: forget the scene, keep going
     done = ros.call(Trigger, 'registration_node/reset_background')
@@ -107,7 +107,7 @@ def test_node_reads_depth_images(ros, walk_in):
     images.publish(first_image)
     ros.wait(lambda: any('CameraInfo' in line for line in node.log.history), what='no camera info warning')
     depths = []
-    ros.wait(lambda: node.processed == 1, what='the image without camera info handled')
+    ros.wait(lambda: node.stages.processed == 1, what='the image without camera info handled')
     for i, (points, stamp) in enumerate(zip(walk_in.clouds, walk_in.stamps_ns)):
         # RealSense-style rows padded to 64 bytes
         image, info = depth_messages(points[..., 2], stamp, walk_in.ground_truth['intrinsics'], pad=64 - 640 % 64)
@@ -115,7 +115,7 @@ def test_node_reads_depth_images(ros, walk_in):
         images.publish(image)
         # one at a time: the node publishes filtered_points before it registers, and a
         # cloud right behind would replace a frame still waiting for the registration
-        ros.wait(lambda: len(filtered) == i + 1 and node.processed == i + 2, what=f'frame {i} handled')
+        ros.wait(lambda: len(filtered) == i + 1 and node.stages.processed == i + 2, what=f'frame {i} handled')
         depths.append(points)
     ros.wait(lambda: len(registered) >= 1, what='registered frames')
     # the depth-image path is the cloud path after millimetre rounding

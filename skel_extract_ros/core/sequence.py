@@ -10,51 +10,17 @@ Frames are consumed one at a time (a generator is fine), so memory holds the res
 """
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field
 from typing import Callable, Iterable
 
 import numpy as np
 
-from .preprocess import PreprocessParams, Preprocessor
-from .registration import STATUS_EMPTY, NonRigidRegistration, RegistrationParams
-from .rest_pose import RestPose, RestPoseError, RestPoseParams
-from .segmentation import STATUS_NOBODY, Segmentation, SegmentationParams, SubjectSegmenter
-
-# A subject that touches the image border is partly out of view: its rest pose waits until
-# it is whole, but no longer than this (a subject too close to ever fit gets one anyway).
-PARTIAL_VIEW_PATIENCE_FRAMES = 30
-
-
-def split_layout(raw: np.ndarray) -> tuple:
-    """(points (N, 3), height, width) of a frame given as (H, W, 3) organized or (N, 3)."""
-    raw = np.asarray(raw)
-    if raw.ndim == 3 and raw.shape[2] == 3:
-        return raw.reshape(-1, 3), raw.shape[0], raw.shape[1]
-    return raw, 1, len(raw)
-
-
-class RestPoseGate:
-    """Which frame may become the rest pose (the offline sequence and the registration node
-    alike): one where somebody is in view, wholly (or partly, once that has lasted
-    PARTIAL_VIEW_PATIENCE_FRAMES frames), with at least a tenth of the rest pose's points
-    (100 at least) left after preprocessing."""
-
-    def __init__(self, rest_params: RestPoseParams):
-        self.min_points = max(100, rest_params.n_points // 10)
-        self.partial_frames = 0
-
-    def reason_to_wait(self, segmentation: Segmentation, n_observed: int) -> str | None:
-        """None when this frame may become the rest pose, else why not: 'nobody',
-        'partial' (the subject touches the image border) or 'few_points'."""
-        partial = segmentation.touches_border and self.partial_frames < PARTIAL_VIEW_PATIENCE_FRAMES
-        self.partial_frames += int(segmentation.touches_border)
-        if segmentation.status == STATUS_NOBODY:
-            return 'nobody'
-        if partial:
-            return 'partial'
-        return 'few_points' if n_observed < self.min_points else None
-
+from .preprocess import PreprocessParams
+from .registration import STATUS_EMPTY, RegistrationParams
+from .registration.params import FrameResult
+from .rest_pose import RestPoseParams
+from .segmentation import SegmentationParams
+from .stream import FrameRegistrar, SubjectFinder, split_layout
 
 @dataclass
 class StepTimes:
@@ -98,51 +64,32 @@ class SequenceRegistration:
 
         `on_frame(index, status)` is called after each frame (progress reporting).
         """
-        segmenter = SubjectSegmenter(self.segmentation_params)
-        preprocess = Preprocessor(self.preprocess_params)
+        finder = SubjectFinder(self.segmentation_params, self.preprocess_params)
+        registrar = FrameRegistrar(self.params, self.rest_params)
         self.times_ = StepTimes()
         self.rest_pose_ = None
         self.segmentation_ = []
-        registration = None
-        gate = RestPoseGate(self.rest_params)
         points, statuses, sigma2, iterations, recaptured = [], [], [], [], []
         self.observed_ = []
         M = self.rest_params.n_points
         for index, raw in enumerate(frames):
-            started = time.perf_counter()
-            flat, height, width = split_layout(raw)
-            segmentation = segmenter(flat, height, width)
-            self.times_.segmentation += time.perf_counter() - started
-            self.segmentation_.append(segmentation.summary())
-            started = time.perf_counter()
-            observed = preprocess(flat[segmentation.mask])
-            self.times_.preprocess += time.perf_counter() - started
+            subject = finder(*split_layout(raw))
+            self.times_.segmentation += subject.seconds_segmentation
+            self.times_.preprocess += subject.seconds_preprocess
+            self.segmentation_.append(subject.segmentation)
             if self.keep_observed:
-                self.observed_.append(observed.astype(np.float32))
-            if registration is None:
-                if gate.reason_to_wait(segmentation, len(observed)) is None:
-                    started = time.perf_counter()
-                    try:
-                        self.rest_pose_ = RestPose.from_points(observed, self.rest_params)
-                    except RestPoseError:
-                        self.rest_pose_ = None
-                    self.times_.rest_pose += time.perf_counter() - started
-                if self.rest_pose_ is None:
-                    points.append(np.full((M, 3), np.nan, dtype=np.float32))
-                    statuses.append(STATUS_EMPTY)
-                    sigma2.append(np.nan)
-                    iterations.append(0)
-                    recaptured.append(0)
-                    if on_frame:
-                        on_frame(index, STATUS_EMPTY)
-                    continue
-                registration = NonRigidRegistration(self.rest_pose_.points, self.params)
-                self.registration_ = registration
-            started = time.perf_counter()
-            result = registration.register_frame(observed)
-            elapsed = time.perf_counter() - started
-            self.times_.registration += elapsed
-            self.times_.per_frame_registration.append(elapsed)
+                self.observed_.append(subject.observed.astype(np.float32))
+            step = registrar(subject.observed, subject.segmentation)
+            self.times_.rest_pose += step.seconds_rest_pose
+            if step.rest_pose_built:
+                self.rest_pose_ = registrar.rest_pose
+                self.registration_ = registrar.registration.registration
+            result = step.result
+            if result is None:
+                result = FrameResult(np.full((M, 3), np.nan), STATUS_EMPTY, np.nan, 0, 0.0)
+            else:
+                self.times_.registration += step.seconds_registration
+                self.times_.per_frame_registration.append(step.seconds_registration)
             points.append(result.points.astype(np.float32))
             statuses.append(result.status)
             sigma2.append(result.sigma2)

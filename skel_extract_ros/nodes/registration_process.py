@@ -38,12 +38,18 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 
 import numpy as np
 
 from ..core.registration import FrameResult, NonRigidRegistration
 from ..core.rest_pose import RestPose, RestPoseParams
 from .worker import lower_priority
+
+# The rest pose child (290 MB resident, Open3D loaded) waits warm this long with nobody in
+# view, then is ended until a region moves: an idle robot does not carry it for hours, and a
+# subject who comes at once does not wait for its start
+REST_POSE_IDLE_RELEASE_S = 10.0
 
 __all__ = ['ChildProcessDied', 'RegistrationProcess', 'RestPoseProcess']
 
@@ -182,6 +188,19 @@ class RestPoseProcess:
     def __init__(self):
         self._child: _Child | None = None
         self.starts = 0                   # children started so far
+        self._somebody_at = time.monotonic()
+
+    def while_waiting(self, somebody: bool) -> bool:
+        """Before the rest pose: warm while a subject may come (somebody in view), ended after
+        REST_POSE_IDLE_RELEASE_S s of nobody. True when it was ended now."""
+        now = time.monotonic()
+        if somebody:
+            self._somebody_at = now
+            self.warm()
+        elif self.is_warm and now - self._somebody_at > REST_POSE_IDLE_RELEASE_S:
+            self.close()
+            return True
+        return False
 
     @property
     def is_warm(self) -> bool:

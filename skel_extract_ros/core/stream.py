@@ -1,0 +1,199 @@
+"""The per-frame step of Steps 0-1, one frame at a time: the subject found in a raw frame
+(segmentation, preprocessing), then the rest-pose gate, the rest pose and Alg. 1.
+
+`skel-extract run` (core.sequence) loops over both in one thread; the registration node
+calls `SubjectFinder` on its camera stage and `FrameRegistrar` on its registration stage,
+with the rest pose and Alg. 1 in child processes (nodes/registration_process.py), so both
+take the same decisions on the same frames.
+
+    >>> finder, registrar = SubjectFinder(), FrameRegistrar(RegistrationParams())
+    >>> subject = finder(points, height, width)        # raw (H*W, 3) m, NaN allowed
+    >>> step = registrar(subject.observed, subject.segmentation)
+    >>> step.status, step.result                       # 'nobody' ... or Alg. 1's FrameResult
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from .preprocess import PreprocessParams, Preprocessor
+from .registration import NonRigidRegistration, RegistrationParams
+from .registration.params import FrameResult
+from .rest_pose import RestPose, RestPoseError, RestPoseParams
+from .segmentation import STATUS_NOBODY, Segmentation, SegmentationParams, SubjectSegmenter
+
+# A subject that touches the image border is partly out of view: its rest pose waits until
+# it is whole, but no longer than this (a subject too close to ever fit gets one anyway).
+PARTIAL_VIEW_PATIENCE_FRAMES = 30
+
+# why a frame did not become the rest pose (FrameStep.status before Alg. 1's own statuses)
+WAIT_NOBODY, WAIT_PARTIAL, WAIT_FEW_POINTS, WAIT_REST_POSE_FAILED = 'nobody', 'partial', 'few_points', 'no_rest_pose'
+
+
+def split_layout(raw: np.ndarray) -> tuple:
+    """(points (N, 3), height, width) of a frame given as (H, W, 3) organized or (N, 3)."""
+    raw = np.asarray(raw)
+    if raw.ndim == 3 and raw.shape[2] == 3:
+        return raw.reshape(-1, 3), raw.shape[0], raw.shape[1]
+    return raw, 1, len(raw)
+
+
+@dataclass
+class Subject:
+    """The subject of one frame: observed (N, 3) m, preprocessed; segmentation (core.
+    segmentation.Segmentation, its per-pixel mask dropped: frames wait in queues);
+    seconds spent segmenting and preprocessing."""
+
+    observed: np.ndarray
+    segmentation: Segmentation
+    seconds_segmentation: float
+    seconds_preprocess: float
+
+
+class SubjectFinder:
+    """Segmentation then preprocessing of raw frames of one camera (the segmenter learns
+    the scene across frames: one finder per camera and rest pose)."""
+
+    def __init__(self, segmentation_params: SegmentationParams | None = None,
+                 preprocess_params: PreprocessParams | None = None):
+        self.segmenter = SubjectSegmenter(segmentation_params or SegmentationParams())
+        self.preprocessor = Preprocessor(preprocess_params or PreprocessParams())
+
+    def reset_background(self) -> None:
+        """Forget the learned scene (the camera moved)."""
+        self.segmenter.reset()
+
+    def __call__(self, points: np.ndarray, height: int, width: int) -> Subject:
+        """points (height * width, 3) m of one raw frame (NaN allowed; height 1 when not organized)."""
+        started = time.perf_counter()
+        segmentation = self.segmenter(points, height, width)
+        segmented = time.perf_counter()
+        observed = self.preprocessor(points[segmentation.mask])
+        return Subject(observed, segmentation.summary(), segmented - started, time.perf_counter() - segmented)
+
+
+class RestPoseGate:
+    """Which frame may become the rest pose: one where somebody is in view, wholly (or
+    partly, once that has lasted PARTIAL_VIEW_PATIENCE_FRAMES frames), with at least a
+    tenth of the rest pose's points (100 at least) left after preprocessing."""
+
+    def __init__(self, rest_params: RestPoseParams):
+        self.min_points = max(100, rest_params.n_points // 10)
+        self.partial_frames = 0
+
+    def reason_to_wait(self, segmentation: Segmentation, n_observed: int) -> str | None:
+        """None when this frame may become the rest pose, else why not: WAIT_NOBODY,
+        WAIT_PARTIAL (the subject touches the image border) or WAIT_FEW_POINTS."""
+        partial = segmentation.touches_border and self.partial_frames < PARTIAL_VIEW_PATIENCE_FRAMES
+        self.partial_frames += int(segmentation.touches_border)
+        if segmentation.status == STATUS_NOBODY:
+            return WAIT_NOBODY
+        if partial:
+            return WAIT_PARTIAL
+        return WAIT_FEW_POINTS if n_observed < self.min_points else None
+
+
+class InProcessRegistration:
+    """Alg. 1 in this process: the registration the node's child process holds, in `run`."""
+
+    def __init__(self):
+        self.registration = None
+
+    def install(self, registration: NonRigidRegistration) -> None:
+        self.registration = registration
+
+    def register_frame(self, observed: np.ndarray, start_points: np.ndarray | None = None) -> FrameResult:
+        return self.registration.register_frame(observed, start_points)
+
+
+@dataclass
+class FrameStep:
+    """What FrameRegistrar made of one frame. status: a WAIT_* reason (no rest pose yet,
+    result None) or Alg. 1's frame status (result its FrameResult); rest_pose_built: this
+    frame became the rest pose; started_from_given: Alg. 1 started from the start_points
+    given; error: why the rest pose could not be built from it; seconds spent on the rest
+    pose and on Alg. 1."""
+
+    status: str
+    result: FrameResult | None = None
+    rest_pose_built: bool = False
+    started_from_given: bool = False
+    error: str = ''
+    seconds_rest_pose: float = 0.0
+    seconds_registration: float = 0.0
+
+
+class FrameRegistrar:
+    """The rest pose from the first frame the gate lets through, then every frame
+    registered (Alg. 1) from the previous one, or from `start_points` when given.
+
+    build_rest_pose(observed, rest_params) -> RestPose and registration (install,
+    register_frame) run where the caller wants them: here by default, in child processes
+    in the registration node."""
+
+    def __init__(self, params: RegistrationParams | None = None, rest_params: RestPoseParams | None = None,
+                 build_rest_pose=RestPose.from_points, registration=None):
+        self.params = params or RegistrationParams()
+        self.rest_params = rest_params or RestPoseParams()
+        self.build_rest_pose = build_rest_pose
+        self.registration = registration or InProcessRegistration()
+        self.reset()
+
+    def reset(self) -> None:
+        """Wait for a new rest pose."""
+        self.gate = RestPoseGate(self.rest_params)
+        self.rest_pose = None
+
+    def __call__(self, observed: np.ndarray, segmentation: Segmentation,
+                 start_points: np.ndarray | None = None) -> FrameStep:
+        """observed (N, 3) m: the frame's subject; start_points (M, 3) m or None."""
+        step = FrameStep('')
+        if self.rest_pose is None:
+            waiting = self.gate.reason_to_wait(segmentation, len(observed))
+            if waiting is not None:
+                step.status = waiting
+                return step
+            started = time.perf_counter()
+            try:
+                rest_pose = self.build_rest_pose(observed, self.rest_params)
+            except RestPoseError as error:
+                step.status, step.error = WAIT_REST_POSE_FAILED, str(error)
+                return step
+            finally:
+                step.seconds_rest_pose = time.perf_counter() - started
+            self.registration.install(NonRigidRegistration(rest_pose.points, self.params))
+            self.rest_pose, step.rest_pose_built = rest_pose, True
+        started = time.perf_counter()
+        step.result = self.registration.register_frame(observed, start_points)
+        step.started_from_given = start_points is not None
+        step.seconds_registration = time.perf_counter() - started
+        step.status = step.result.status
+        return step
+
+
+# what StampOrder makes of a frame's stamp and frame_id
+ORDER_REPEATED, ORDER_WENT_BACK, ORDER_NEW_FRAME_ID = 'repeated', 'went_back', 'new_frame_id'
+
+
+class StampOrder:
+    """The order of one camera's frames. A repeated stamp is a frame to ignore; a stamp going
+    back (a bag looped, a clock reset) or a new frame_id (registered points would mix
+    coordinate frames) means a new rest pose."""
+
+    def __init__(self):
+        self.last_stamp, self.frame_id = None, None
+
+    def __call__(self, stamp: int, frame_id: str) -> str | None:
+        """None for the next frame in order, else ORDER_REPEATED, ORDER_WENT_BACK or
+        ORDER_NEW_FRAME_ID (stamp: integer ns). A repeated frame does not count as seen."""
+        previous_stamp, previous_frame = self.last_stamp, self.frame_id
+        if previous_stamp is not None and stamp == previous_stamp:
+            return ORDER_REPEATED
+        self.last_stamp, self.frame_id = stamp, frame_id
+        if previous_stamp is None:
+            return None
+        if stamp < previous_stamp:
+            return ORDER_WENT_BACK
+        return ORDER_NEW_FRAME_ID if frame_id != previous_frame else None
