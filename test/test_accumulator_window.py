@@ -12,7 +12,7 @@ from ros_harness import DT, T0, header, stamps_of
 from skel_extract_ros.core.structure import StructureParams, extract_structure
 from skel_extract_ros.nodes.accumulator_node import AccumulatorNode
 from skel_extract_ros.nodes.common import LATCHED_QOS, STREAM_QOS
-from skel_extract_ros.nodes.conversions import cloud_message, structure_document
+from skel_extract_ros.nodes.conversions import cloud_message, parse_structure, structure_document
 from skel_extract_ros.nodes.joint_estimation_node import JointEstimationNode
 from test_growth import three_part_chain
 from two_bone import two_bone_sequence
@@ -266,3 +266,23 @@ def test_a_model_learned_for_a_replaced_rest_pose_is_not_used(ros, held_alg2):
     ros.wait(lambda: not node.estimating, what='Alg. 2 ending')
     assert node.tracker is None and not descriptions
     assert node._diagnostics()[1] == 'waiting for skeleton/structure'
+
+
+def test_the_structure_message_carries_the_rigid_fits_alg_2_starts_from():
+    """The joint node takes each bone's rigid fit at each key frame from skeleton/structure
+    (Alg. 2's start) instead of fitting them again: they arrive exactly, and a message whose
+    fits do not match its key frames and bones is refused."""
+    rest, registered, _, _, _ = two_bone_sequence(n_frames=8)
+    structure = extract_structure(rest, registered, StructureParams(n_clusters=12))
+    stamps = [T0 + i * DT for i in range(8)]
+    document = structure_document(structure, T0, stamps, 'camera_depth_optical_frame')
+    parsed = parse_structure(json.dumps(document))
+    assert np.array_equal(parsed['rotations'], structure.rotations)
+    assert np.array_equal(parsed['translations'], structure.translations)
+    # with the rest and registered frames, the fits are those of the frames (not identities)
+    moved = np.einsum('fbij,mj->fbmi', parsed['rotations'], rest) + parsed['translations'][:, :, None]
+    own = moved[np.arange(8)[:, None], structure.labels[None, :], np.arange(len(rest))[None, :]]
+    assert np.median(np.linalg.norm(own - registered, axis=2)) < 0.01
+    document['rotations'] = document['rotations'][:-1]          # one key frame short
+    with pytest.raises(ValueError, match='malformed'):
+        parse_structure(json.dumps(document))

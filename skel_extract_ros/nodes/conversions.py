@@ -20,7 +20,8 @@ from ..core.skeleton_model import SkeletonModel
 from ..core.structure import SkeletalStructure
 from ..pointcloud import encode_xyz
 
-STRUCTURE_VERSION = 1
+# 2: the bones' rigid fits at the key frames (rotations, translations) added
+STRUCTURE_VERSION = 2
 
 
 def stamp_ns(header) -> int:
@@ -53,8 +54,10 @@ def cloud_message(points: np.ndarray, header: Header, float64: bool = False) -> 
 def structure_document(structure: SkeletalStructure, rest_stamp_ns: int, window_stamps_ns, frame_id: str,
                        joint_ids=None, changes: dict | None = None) -> dict:
     """The skeleton/structure JSON: bones, bone tree, per-point labels, the stamps of the
-    frames it was learned on (a growing skeleton's key frames), stable joint ids (default
-    0..B-1) and what changed since the previous one (core.growth)."""
+    frames it was learned on (a growing skeleton's key frames) and each bone's rigid fit at
+    each of them (rotations as 9 row-major numbers, translations m; Alg. 2 starts from
+    them, so the joint node does not fit them again), stable joint ids (default 0..B-1) and
+    what changed since the previous one (core.growth)."""
     joint_ids = range(structure.n_bones) if joint_ids is None else joint_ids
     return {
         'version': STRUCTURE_VERSION,
@@ -67,6 +70,8 @@ def structure_document(structure: SkeletalStructure, rest_stamp_ns: int, window_
         'labels': [int(label) for label in structure.labels],
         'joints': structure.joints.tolist(),
         'boundary_centroids': structure.boundary_centroids.tolist(),
+        'rotations': structure.rotations.reshape(len(structure.rotations), structure.n_bones, 9).tolist(),
+        'translations': structure.translations.tolist(),
         'joint_ids': [int(i) for i in joint_ids],
         'changes': changes or {},
     }
@@ -90,9 +95,11 @@ def parse_structure(text: str) -> dict:
         document['labels'] = np.asarray(document['labels'], dtype=np.int64)
         document['joints'] = np.asarray(document['joints'], dtype=np.float64).reshape(-1, 3)
         document['boundary_centroids'] = np.asarray(document['boundary_centroids'], dtype=np.float64).reshape(-1, 3)
-        B = len(document['parents'])
+        B, F = len(document['parents']), len(document['window_stamps_ns'])
         if len(document['joints']) != B or len(document['boundary_centroids']) != B:
             raise ValueError('joints / boundary_centroids do not match the bone count')
+        document['rotations'] = np.asarray(document['rotations'], dtype=np.float64).reshape(F, B, 3, 3)
+        document['translations'] = np.asarray(document['translations'], dtype=np.float64).reshape(F, B, 3)
         document['joint_ids'] = np.asarray(document.get('joint_ids', np.arange(B)), dtype=np.int64)
         if len(document['joint_ids']) != B or len(set(document['joint_ids'].tolist())) != B:
             raise ValueError('joint_ids must be one distinct id per bone')

@@ -53,7 +53,6 @@ from std_msgs.msg import String
 from ..core.joints import JointEstimation, JointParams
 from ..core.live import ArticulatedTracker, CameraTracker, LiveJointTracker
 from ..core.point_sets import finite_rows
-from ..core.rigid import fit_rigid_segments
 from ..core.skeleton_model import SkeletonModel
 from ..core.structure import SkeletalStructure
 from ..params import joint_params_from_dict
@@ -258,7 +257,9 @@ class JointEstimationNode(WorkingNode):
         registered = np.stack([f[1] for f in frames]).astype(np.float64)
         observed = [f[2] for f in frames]
         labels, parents = document['labels'], document['parents']
-        rotations, translations = fit_rigid_segments(rest, registered, labels, len(parents))
+        # the structure's rigid fits at the frames found (the key frames the buffer had)
+        found = [document['window_stamps_ns'].index(stamp) for stamp in stamps]
+        rotations, translations = document['rotations'][found], document['translations'][found]
         structure = SkeletalStructure(labels, parents, rotations, translations, document['joints'],
                                       document['boundary_centroids'])
         if self.provisional_skeleton and self.live_frames == 'camera':
