@@ -25,7 +25,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from skel_extract_ros.replay import _start_nodes, _stop_nodes, use_large_message_profile  # noqa: E402
+from skel_extract_ros.replay.node_processes import start_nodes, stop_nodes, use_large_message_profile  # noqa: E402
 
 OUTPUTS = ('filtered_points', 'registered_points', 'skeleton/joints')
 
@@ -64,14 +64,12 @@ def main() -> int:
     parser.add_argument('--work', default=None)
     args = parser.parse_args()
 
-    import rclpy
     from geometry_msgs.msg import PoseArray
-    from rclpy.executors import SingleThreadedExecutor
     from rclpy.serialization import deserialize_message
-    from rclpy.signals import SignalHandlerOptions
     from sensor_msgs.msg import PointCloud2
 
     from skel_extract_ros.bag import _raw_messages, select_cloud_topic
+    from skel_extract_ros.nodes.background import BackgroundNode
     from skel_extract_ros.nodes.common import SENSOR_QOS, STREAM_QOS
     from skel_extract_ros.nodes.conversions import stamp_ns
 
@@ -85,11 +83,10 @@ def main() -> int:
     pass_ns = stamps[-1] - stamps[0] + period_ns
 
     use_large_message_profile()        # publish as a configured camera driver, as replay does
-    context = rclpy.Context()
     # Ctrl-C ends the soak through the finally below (the nodes stopped as a user would)
-    rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
-    processes = _start_nodes(Path(args.params) if args.params else None, None, work / 'logs', lossless=False)
-    node = rclpy.create_node('skel_extract_soak', context=context)
+    helper = BackgroundNode('skel_extract_soak', signal_handlers=False)
+    node = helper.node
+    processes = start_nodes(Path(args.params) if args.params else None, None, work / 'logs', lossless=False)
     counts = {t: 0 for t in OUTPUTS}
     lock = threading.Lock()
 
@@ -102,10 +99,7 @@ def main() -> int:
     node.create_subscription(PointCloud2, 'registered_points', counter('registered_points'), STREAM_QOS)
     node.create_subscription(PoseArray, 'skeleton/joints', counter('skeleton/joints'), STREAM_QOS)
     publisher = node.create_publisher(PointCloud2, 'points', SENSOR_QOS)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(node)
-    spinner = threading.Thread(target=executor.spin, daemon=True)
-    spinner.start()
+    helper.start()
     while publisher.get_subscription_count() < 1:
         time.sleep(0.1)
 
@@ -142,11 +136,8 @@ def main() -> int:
                 last_counts, last_time = current, now
                 next_sample = now + args.sample_s
     finally:
-        codes = _stop_nodes(processes)
-        executor.shutdown()
-        spinner.join(timeout=5.0)
-        node.destroy_node()
-        rclpy.shutdown(context=context)
+        codes = stop_nodes(processes)
+        helper.close()
     tracking = [s for s in samples if s[2] > 0]
     if len(tracking) >= 2:
         first, last = tracking[0], tracking[-1]

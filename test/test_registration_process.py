@@ -42,8 +42,8 @@ def test_the_child_registers_exactly_as_the_node_would(sequence, child):
 def test_priority_drops_once_asked_and_a_new_child_starts_at_the_node_s(child):
     base = os.getpriority(os.PRIO_PROCESS, 0)
     assert child.nice == base and not child.lowered and not child.in_idle_class
-    child.lower_priority()
-    child.lower_priority()                              # once, not twice
+    child.make_nicer()
+    child.make_nicer()                              # once, not twice
     tasks = os.listdir(f'/proc/{child.pid}/task')
     assert len(tasks) >= 1
     assert all(os.getpriority(os.PRIO_PROCESS, int(task)) == min(base + 5, 19) for task in tasks)
@@ -58,7 +58,7 @@ def test_with_sched_idle_every_thread_of_the_child_enters_the_idle_class_and_a_n
     try:
         child.install(NonRigidRegistration(rest, RegistrationParams()))
         assert os.sched_getscheduler(child.pid) == os.SCHED_OTHER and not child.in_idle_class
-        child.lower_priority()
+        child.make_nicer()
         tasks = os.listdir(f'/proc/{child.pid}/task')
         assert all(os.sched_getscheduler(int(task)) == os.SCHED_IDLE for task in tasks)
         assert child.in_idle_class and child.nice == min(os.getpriority(os.PRIO_PROCESS, 0) + 5, 19)

@@ -28,14 +28,13 @@ M-step blocks, each solved exactly:
 from __future__ import annotations
 
 import itertools
-import os
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from .articulated import BoneBlocks, blend, dense_weights, influenced_positions
 from .gmm import CandidateCache
+from .parallel import parallel_map
 from .point_sets import median_spacing
 from .joint_centres import joint_trajectories, solve_joints
 from .skeleton_model import SkeletonModel
@@ -180,41 +179,37 @@ class JointEstimation:
         # numpy reductions release the GIL, so threads use every core.
         spacing = median_spacing(rest)
         caches = [CandidateCache(v, spacing, p.e_step_neighbours) if len(v) else None for v in observed]
-        pool = ThreadPoolExecutor(max_workers=min(os.cpu_count() or 1, 8))
 
         def e_step(frame):
             if caches[frame] is None:
                 return None
             return caches[frame].posteriors(deformed[frame], tau[frame], p.omega, p.truncation_sigmas)
-        try:
-            for _ in range(p.max_iterations):
-                stats = list(pool.map(e_step, range(F)))
-                P1 = np.stack([s.P1 if s else np.zeros(M) for s in stats])              # (F, M)
-                targets = np.stack([s.targets() if s else np.zeros((M, 3)) for s in stats])
-                data = sum(s.nll for s in stats if s) + 0.5 * p.zeta * np.sum((registered - deformed) ** 2)
-                joint_term = self._joint_energy(rotations, translations, joints, anchors, edges, p.eta)
-                energies.append(float(data + 0.5 * alpha * joint_term))
-                # alpha grows every iteration, so consecutive totals differ even at a fixed point:
-                # the convergence test compares the two iterates under the same (previous) alpha.
-                if previous is not None:
-                    before = previous[0] + 0.5 * previous[2] * previous[1]
-                    after = data + 0.5 * previous[2] * joint_term
-                    if abs(before - after) <= p.tolerance * abs(after):
-                        break
-                previous = (data, joint_term, alpha)
-                # the registration and data terms as one: weight c and target z per point and frame
-                a = P1 / tau[:, None]                                                    # (F, M)
-                c = a + p.zeta
-                z = (a[..., None] * targets + p.zeta * registered) / c[..., None]        # (F, M, 3)
-                influences, weights = self._update_weights(rest, rotations, translations, c, z, k)
-                deformed = BoneBlocks(rest, influences, weights, parents).update(
-                    z, c, rotations, translations, joints, alpha, p.gamma)
-                joints = solve_joints(rotations, translations, parents, anchors, p.eta)
-                tau = np.array([max(s.squared_residual(x) / (3.0 * max(s.Np, 1e-12)), p.min_tau) if s else t
-                                for s, x, t in zip(stats, deformed, tau)])
-                alpha *= p.alpha_growth
-        finally:
-            pool.shutdown()
+        for _ in range(p.max_iterations):
+            stats = parallel_map(e_step, range(F))
+            P1 = np.stack([s.P1 if s else np.zeros(M) for s in stats])              # (F, M)
+            targets = np.stack([s.targets() if s else np.zeros((M, 3)) for s in stats])
+            data = sum(s.nll for s in stats if s) + 0.5 * p.zeta * np.sum((registered - deformed) ** 2)
+            joint_term = self._joint_energy(rotations, translations, joints, anchors, edges, p.eta)
+            energies.append(float(data + 0.5 * alpha * joint_term))
+            # alpha grows every iteration, so consecutive totals differ even at a fixed point:
+            # the convergence test compares the two iterates under the same (previous) alpha.
+            if previous is not None:
+                before = previous[0] + 0.5 * previous[2] * previous[1]
+                after = data + 0.5 * previous[2] * joint_term
+                if abs(before - after) <= p.tolerance * abs(after):
+                    break
+            previous = (data, joint_term, alpha)
+            # the registration and data terms as one: weight c and target z per point and frame
+            a = P1 / tau[:, None]                                                    # (F, M)
+            c = a + p.zeta
+            z = (a[..., None] * targets + p.zeta * registered) / c[..., None]        # (F, M, 3)
+            influences, weights = self._update_weights(rest, rotations, translations, c, z, k)
+            deformed = BoneBlocks(rest, influences, weights, parents).update(
+                z, c, rotations, translations, joints, alpha, p.gamma)
+            joints = solve_joints(rotations, translations, parents, anchors, p.eta)
+            tau = np.array([max(s.squared_residual(x) / (3.0 * max(s.Np, 1e-12)), p.min_tau) if s else t
+                            for s, x, t in zip(stats, deformed, tau)])
+            alpha *= p.alpha_growth
         return JointEstimate(influences, weights, rotations, translations, joints, parents, tau, energies)
 
     # ------------------------------------------------------------------------------------

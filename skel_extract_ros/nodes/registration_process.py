@@ -6,7 +6,7 @@ in the node's own process it holds the GIL most of the time, so the camera stage
 (segmentation -> filtered_points, what the live path fits) waits for the GIL inside every
 numpy call. In its own process it no longer shares a GIL, and its priority can be set
 apart from the live path's: while the skeleton is learned, registration is all that
-matters and runs at the node's priority; once the skeleton is tracked, `lower_priority`
+matters and runs at the node's priority; once the skeleton is tracked, `make_nicer`
 makes the scheduler give a short CPU to learning, not to the live path (nicer, and in the
 idle scheduling class: measured at 30 Hz on 2 cores, bench/README.md "Registration in its
 own process" and "Registration in the idle class").
@@ -44,7 +44,7 @@ import numpy as np
 
 from ..core.registration import FrameResult, NonRigidRegistration
 from ..core.rest_pose import RestPose, RestPoseParams
-from .worker import lower_priority
+from .worker import Worker, lower_priority
 
 # The rest pose child (290 MB resident, Open3D loaded) waits warm this long with nobody in
 # view, then is ended until a region moves: an idle robot does not carry it for hours, and a
@@ -91,7 +91,7 @@ class _Child:
         except OSError:
             pass
         if background:
-            threading.Thread(target=self._reap, args=(timeout,), name=f'reap-{self.pid}', daemon=True).start()
+            _reaper().submit((self, timeout))
         else:
             self._reap(timeout)
 
@@ -103,12 +103,23 @@ class _Child:
             self._process.wait()
 
 
+_REAPER = None
+
+
+def _reaper() -> Worker:
+    """The Worker that waits for children closed in the background (one for the process)."""
+    global _REAPER
+    if _REAPER is None:
+        _REAPER = Worker(lambda item: item[0]._reap(item[1]), 'reaper', capacity=64, keep='oldest')
+    return _REAPER
+
+
 class RegistrationProcess:
     """A NonRigidRegistration run in one child process.
 
-    niceness: what `lower_priority` adds to the child's nice value (0 = the priority is
+    niceness: what `make_nicer` adds to the child's nice value (0 = the priority is
     never lowered).
-    sched_idle: `lower_priority` also puts the child in Linux's idle scheduling class
+    sched_idle: `make_nicer` also puts the child in Linux's idle scheduling class
     (SCHED_IDLE): it runs when no other task wants the core. A nice value only shares the
     cores in proportion; a live-path thread that wakes while the nicer child runs still
     waited for the scheduler to preempt it (the cow at 30 Hz on 2 cores: camera stage 26
@@ -128,7 +139,7 @@ class RegistrationProcess:
         self.pid = self._child.pid
         self.lowered = False
 
-    def lower_priority(self) -> None:
+    def make_nicer(self) -> None:
         """Add `niceness` to the child's nice value and, with `sched_idle`, put it in the
         idle scheduling class (once; a new child starts at the node's priority)."""
         if self.lowered or self.niceness == 0:     # 0: never lowered, nor put in the idle class

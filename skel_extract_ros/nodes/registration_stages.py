@@ -110,7 +110,7 @@ class RegistrationStages:
             self.registration.configure(self.settings.queue_size, keep='newest')
             release_freed_memory()
         if not self.registration_process.lowered:
-            self.registration_process.lower_priority()
+            self.registration_process.make_nicer()
             idle = ' in the idle scheduling class' if self.registration_process.in_idle_class else ''
             self.logger.info(f'the skeleton is learned: registration runs at nice {self.registration_process.nice}'
                              f'{idle} and takes the newest frames from now on')

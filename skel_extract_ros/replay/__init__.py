@@ -27,85 +27,25 @@ from __future__ import annotations
 
 import os
 import shutil
-import signal
-import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
 
-from .recording import NODES, OUTPUT_TOPICS, Received, _Recorder, _ros_type
+from .node_processes import log_tail, start_nodes, stop_nodes, use_large_message_profile
+from .recording import OUTPUT_TOPICS, Received, _Recorder, _ros_type
 from .summary import _camera_delivery, _latencies, _write_files
+
+__all__ = ['ReplayError', 'looped_stamp', 'replay', 'use_large_message_profile']
+
+# Every link between the nodes must be up before the first cloud, not only ours: a volatile
+# stream loses what is published before its subscriber is discovered. Readers per topic.
+INTERNAL_READERS = {'rest_points': 3, 'registered_points': 3, 'filtered_points': 3, 'skeleton/structure': 2}
+
 
 class ReplayError(RuntimeError):
     """Replay could not finish; the message is one line for the user."""
-
-
-def use_large_message_profile() -> None:
-    """Publish like a camera driver configured as README says: Fast DDS's shared-memory
-    segment is 512 kB by default, and a third of 1.2 MB clouds at 30 Hz (600 kB 640x480
-    depth images too) never reached the node on a loaded 2-core machine; the publisher's
-    segment is what counts (bench/README.md, "Large clouds over shared memory"). Sets
-    FASTRTPS_DEFAULT_PROFILES_FILE to the packaged 4 MB profile unless it or
-    FASTDDS_DEFAULT_PROFILES_FILE is set; call before rclpy.init (Fast DDS reads it once),
-    the nodes started after inherit it."""
-    from ..params import fastdds_profile_file
-    profile = fastdds_profile_file()
-    if profile is not None and not (os.environ.get('FASTRTPS_DEFAULT_PROFILES_FILE')
-                                    or os.environ.get('FASTDDS_DEFAULT_PROFILES_FILE')):
-        os.environ['FASTRTPS_DEFAULT_PROFILES_FILE'] = str(profile)
-
-
-def _start_nodes(params_file: Path | None, namespace: str | None, logs: Path, depth_image: bool = False,
-                 lossless: bool = True) -> dict:
-    logs.mkdir(parents=True, exist_ok=True)
-    env = dict(os.environ, PYTHONUNBUFFERED='1')
-    processes = {}
-    for name in NODES:
-        command = [sys.executable, '-m', f'skel_extract_ros.nodes.{name}', '--ros-args']
-        if params_file is not None:
-            command += ['--params-file', str(params_file)]
-        if name == 'registration_node':
-            if lossless:   # a lossless replay must not lose clouds (see the node)
-                command += ['-p', 'input_reliability:=reliable', '-p', 'lossless:=true']
-            if depth_image:
-                command += ['-p', 'input:=depth_image']
-        if name == 'joint_estimation_node' and lossless:   # the joints `run` gives: every registered frame
-            command += ['-p', 'live_frames:=registered']
-        if namespace:
-            command += ['-r', f'__ns:={namespace}']
-        log = open(logs / f'{name}.log', 'w')
-        processes[name] = (subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, env=env), log)
-    return processes
-
-
-def _stop_nodes(processes: dict) -> dict:
-    """SIGINT (Ctrl-C) every node, as a user would; returns {name: exit code}. A node still
-    running 20 s later is asked for its threads' stacks (SIGUSR1: into its log, see
-    nodes.common.run_node), then killed (exit code -9)."""
-    for process, _ in processes.values():
-        if process.poll() is None:
-            process.send_signal(signal.SIGINT)
-    codes = {}
-    for name, (process, log) in processes.items():
-        try:
-            codes[name] = process.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            process.send_signal(signal.SIGUSR1)
-            time.sleep(1.0)
-            process.kill()
-            codes[name] = process.wait()
-        log.close()
-    return codes
-
-
-def _log_tail(path: Path, lines: int = 3) -> str:
-    try:
-        return ' | '.join(path.read_text().strip().splitlines()[-lines:])
-    except OSError:
-        return ''
 
 
 def _held_messages(input_path: Path, topic: str) -> list:
@@ -155,152 +95,196 @@ def replay(input_path, out, rate: float = 1.0, topic: str | None = None, params_
     `bounce` every other pass plays the bag backwards instead, see `looped_stamp`: the
     bag's messages are then held in memory).
     Raises ReplayError / BagError on failure."""
-    import rclpy
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.serialization import deserialize_message, serialize_message
-    from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
-    from std_srvs.srv import Trigger
+    return _Replay(Path(input_path), Path(out), rate, topic, params_file, namespace, frame_timeout, progress,
+                   realtime, loops, bounce).run()
 
-    from ..nodes.conversions import stamp_ns
 
-    from ..bag import _raw_messages, camera_info_topic, cloud_topics, is_depth_topic, select_cloud_topic, typestore
-    from ..params import default_params_file, load_params_file
+class _Replay:
+    """One replay: the bag checked and read (constructor), then `run`: the nodes started, the
+    links waited for, the bag streamed, the window closed, the joints waited for."""
 
-    input_path, out = Path(input_path), Path(out)
-    if rate < 0:
-        raise ReplayError(f'--rate must be >= 0 (0 = as fast as possible), got {rate}')
-    if realtime and rate == 0:
-        raise ReplayError('--realtime needs a --rate above 0 (1 = the bag\'s own pace)')
-    if loops < 1 or (loops > 1 and not realtime):
-        raise ReplayError(f'--loop must be >= 1 and needs --realtime (a lossless replay learns one window), '
-                          f'got {loops}')
-    topic = select_cloud_topic(input_path, topic)
-    n_frames = cloud_topics(input_path)[topic]
-    if n_frames < 2:
-        raise ReplayError(f'{input_path}: {n_frames} cloud(s) on {topic}; at least 2 are needed')
-    params_file = Path(params_file) if params_file else default_params_file()
-    if params_file is not None:
-        load_params_file(params_file)   # fail early, in this process, on a bad file
-    if (out / 'output.mcap').exists():
-        raise ReplayError(f'{out / "output.mcap"} exists already; choose a new --out or remove it')
-    out.mkdir(parents=True, exist_ok=True)
+    def __init__(self, input_path: Path, out: Path, rate, topic, params_file, namespace, frame_timeout,
+                 progress, realtime, loops, bounce):
+        from rclpy.serialization import deserialize_message
 
-    # --bounce plays passes backwards: the bag's messages are held, read before any node starts
-    held = _held_messages(input_path, topic) if bounce and loops > 1 else None
-    store = typestore()
-    depth_image = is_depth_topic(input_path, topic)
-    cloud_type = _ros_type('sensor_msgs/msg/Image' if depth_image else 'sensor_msgs/msg/PointCloud2')
-    infos = []
-    if depth_image:   # (stamp ns, raw CDR) of every camera info, to send before its image
-        info_type = _ros_type('sensor_msgs/msg/CameraInfo')
-        infos = [(stamp_ns(deserialize_message(bytes(raw), info_type).header), bytes(raw))
-                 for _t, raw in _raw_messages(input_path, camera_info_topic(topic))]
-        info_stamps = np.array([stamp for stamp, _ in infos])
-    received = Received()
-    use_large_message_profile()
-    context = rclpy.Context()
-    rclpy.init(context=context)
-    processes = _start_nodes(params_file, namespace, out / 'logs', depth_image, lossless=not realtime)
-    # rosbags writes a bag directory DIR/.recording/ holding .recording.mcap; the file is
-    # all a reader needs, so it becomes DIR/output.mcap when the recording closes
-    recording = out / '.recording'
-    shutil.rmtree(recording, ignore_errors=True)
-    writer = Writer(recording, version=9, storage_plugin=StoragePlugin.MCAP)
-    writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
-    writer.open()
-    node = rclpy.create_node('skel_extract_replay', namespace=namespace or '', context=context)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(node)
-    spinner = threading.Thread(target=executor.spin, daemon=True)
-    exit_codes = {}
-    try:
-        recorder = _Recorder(node, writer, store, received, depth_image, lossless=not realtime)
-        spinner.start()
+        from ..bag import _raw_messages, camera_info_topic, cloud_topics, is_depth_topic, select_cloud_topic
+        from ..nodes.conversions import stamp_ns
+        from ..params import default_params_file, load_params_file
+        if rate < 0:
+            raise ReplayError(f'--rate must be >= 0 (0 = as fast as possible), got {rate}')
+        if realtime and rate == 0:
+            raise ReplayError('--realtime needs a --rate above 0 (1 = the bag\'s own pace)')
+        if loops < 1 or (loops > 1 and not realtime):
+            raise ReplayError(f'--loop must be >= 1 and needs --realtime (a lossless replay learns one window), '
+                              f'got {loops}')
+        self.input_path, self.out, self.rate, self.namespace = input_path, out, rate, namespace
+        self.frame_timeout, self.progress, self.realtime = frame_timeout, progress, realtime
+        self.loops, self.bounce = loops, bounce
+        self.topic = select_cloud_topic(input_path, topic)
+        self.n_frames = cloud_topics(input_path)[self.topic]
+        if self.n_frames < 2:
+            raise ReplayError(f'{input_path}: {self.n_frames} cloud(s) on {self.topic}; at least 2 are needed')
+        self.params_file = Path(params_file) if params_file else default_params_file()
+        if self.params_file is not None:
+            load_params_file(self.params_file)   # fail early, in this process, on a bad file
+        if (out / 'output.mcap').exists():
+            raise ReplayError(f'{out / "output.mcap"} exists already; choose a new --out or remove it')
+        out.mkdir(parents=True, exist_ok=True)
+        # --bounce plays passes backwards: the bag's messages are held, read before any node starts
+        self.held = _held_messages(input_path, self.topic) if bounce and loops > 1 else None
+        self.depth_image = is_depth_topic(input_path, self.topic)
+        self.cloud_type = _ros_type('sensor_msgs/msg/Image' if self.depth_image else 'sensor_msgs/msg/PointCloud2')
+        self.info_type = _ros_type('sensor_msgs/msg/CameraInfo')
+        # (stamp ns, raw CDR) of every camera info, to send before its image
+        self.infos = [(stamp_ns(deserialize_message(bytes(raw), self.info_type).header), bytes(raw))
+                      for _t, raw in _raw_messages(input_path, camera_info_topic(self.topic))] \
+            if self.depth_image else []
+        self.info_stamps = np.array([stamp for stamp, _ in self.infos])
+        self.received = Received()
 
-        def alive():
-            for name, (process, _) in processes.items():
-                if process.poll() is not None:
-                    raise ReplayError(f'{name} exited with code {process.returncode}: '
-                                      f'{_log_tail(out / "logs" / f"{name}.log")}')
+    def run(self) -> dict:
+        from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
 
-        # Every link between the nodes must be up too, not only ours: a volatile stream
-        # loses what is published before its subscriber is discovered (the joint node
-        # once missed the first five registered frames that way).
-        internal = {'rest_points': 3, 'registered_points': 3, 'filtered_points': 3, 'skeleton/structure': 2}
+        from ..bag import typestore
+        from ..nodes.background import BackgroundNode
+        use_large_message_profile()
+        helper = BackgroundNode('skel_extract_replay', self.namespace)
+        self.processes = start_nodes(self.params_file, self.namespace, self.out / 'logs', self.depth_image,
+                                     lossless=not self.realtime)
+        # rosbags writes a bag directory DIR/.recording/ holding .recording.mcap; the file is
+        # all a reader needs, so it becomes DIR/output.mcap when the recording closes
+        recording = self.out / '.recording'
+        shutil.rmtree(recording, ignore_errors=True)
+        writer = Writer(recording, version=9, storage_plugin=StoragePlugin.MCAP)
+        writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+        writer.open()
+        self.node = helper.node
+        try:
+            self.recorder = _Recorder(self.node, writer, typestore(), self.received, self.depth_image,
+                                      lossless=not self.realtime)
+            helper.start()
+            self._connect()
+            started = time.perf_counter()
+            streamed_until = self._stream(started)
+            streamed = streamed_until - started
+            self._close_window()
+            self._wait_for_joints()
+        finally:
+            exit_codes = stop_nodes(self.processes)
+            helper.close()
+            writer.close()
+            (recording / '.recording.mcap').replace(self.out / 'output.mcap')
+            shutil.rmtree(recording, ignore_errors=True)
+        summary = _write_files(self.received, self.out)
+        summary.update(_latencies(self.received, self.realtime))
+        if self.realtime:
+            summary['realtime'] = _camera_delivery(self.received, streamed)
+        summary['streamed_s'] = streamed
+        summary['clouds_per_s'] = self.n_frames * self.loops / streamed
+        summary['exit_codes'] = exit_codes
+        summary['counts'] = dict(self.received.counts)
+        return summary
 
-        # ... and the graph as this node sees it is not enough: the accumulator once missed
-        # the first 3 registered frames, its reader not yet matched to the registration node's
-        # writer. The registration node says how many readers its outputs have matched.
+    def _alive(self) -> None:
+        for name, (process, _) in self.processes.items():
+            if process.poll() is not None:
+                raise ReplayError(f'{name} exited with code {process.returncode}: '
+                                  f'{log_tail(self.out / "logs" / f"{name}.log")}')
+
+    def _wait(self, condition, timeout: float) -> bool:
+        return self.recorder.wait_for(condition, timeout, self._alive)
+
+    def _connect(self) -> None:
+        """Every link up: ours to the nodes, the nodes' among themselves (INTERNAL_READERS),
+        and, because the graph as this node sees it is not enough (a reader not yet matched
+        to the writer loses the first frames), the registration node's own count of the
+        readers its outputs have matched."""
+        recorder, node, received = self.recorder, self.node, self.received
+
         def connected():
             return (recorder.publisher.get_subscription_count() >= 1
                     and (recorder.info_publisher is None or recorder.info_publisher.get_subscription_count() >= 1)
                     and all(node.count_publishers(t) >= 1 for t, _, _ in OUTPUT_TOPICS)
-                    and all(node.count_subscribers(t) >= n for t, n in internal.items())
+                    and all(node.count_subscribers(t) >= n for t, n in INTERNAL_READERS.items())
                     and int(received.registration.get('outputs_matched', 0)) >= 3)
-        if not recorder.wait_for(connected, 120.0, alive):
+        if not self._wait(connected, 120.0):
             raise ReplayError('the nodes did not come up within 120 s (see DIR/logs)')
 
-        started = time.perf_counter()
+    def _stream(self, started: float) -> float:
+        """Publish the bag (restamped per pass); lossless, each cloud only once the previous
+        one is segmented and the newest structure described. Returns when streaming ended
+        (perf_counter s): realtime, once the nodes went quiet."""
+        from rclpy.serialization import deserialize_message, serialize_message
+
+        from ..bag import _raw_messages
+        from ..nodes.conversions import stamp_ns
+        received, n_frames = self.received, self.n_frames
         first_stamp, previous, pass_ns, mirror_ns = None, None, 0, 0
 
         def restamped(raw, msg_type, pass_index):
             """(original stamp ns, its stamp in this pass, raw CDR) of a message."""
             msg = deserialize_message(bytes(raw), msg_type)
             original = stamp_ns(msg.header)
-            stamp = looped_stamp(original, pass_index, pass_ns, mirror_ns, bounce)
+            stamp = looped_stamp(original, pass_index, pass_ns, mirror_ns, self.bounce)
             if stamp != original:
                 msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp, 10**9)
                 raw = serialize_message(msg)
             return original, stamp, bytes(raw)
-        if held is not None:
-            bag_messages = (raw for pass_index in range(loops) for raw in (held[::-1] if pass_index % 2 else held))
+        if self.held is not None:
+            held = self.held
+            bag_messages = (raw for k in range(self.loops) for raw in (held[::-1] if k % 2 else held))
         else:
-            bag_messages = (raw for _pass in range(loops) for _time, raw in _raw_messages(input_path, topic))
+            bag_messages = (raw for _pass in range(self.loops)
+                            for _time, raw in _raw_messages(self.input_path, self.topic))
         for index, raw in enumerate(bag_messages):
             if index == n_frames:   # the bag's length and one period: a pass moves the stamps on by it
                 pass_ns = (previous - first_stamp) * n_frames // (n_frames - 1)
                 mirror_ns = first_stamp + previous
             pass_index = index // n_frames
-            original, stamp, raw = restamped(raw, cloud_type, pass_index)
+            original, stamp, raw = restamped(raw, self.cloud_type, pass_index)
             first_stamp = stamp if first_stamp is None else first_stamp
-            if not realtime and previous is not None and not recorder.wait_for(
-                    lambda s=previous: s in received.filtered_at, frame_timeout, alive):
-                print(f'skel-extract replay: no answer to cloud {index - 1} within {frame_timeout:.0f} s; '
+            if not self.realtime and previous is not None and not self._wait(
+                    lambda s=previous: s in received.filtered_at, self.frame_timeout):
+                print(f'skel-extract replay: no answer to cloud {index - 1} within {self.frame_timeout:.0f} s; '
                       'going on', file=sys.stderr)
-            if rate > 0:
-                due = started + (stamp - first_stamp) * 1e-9 / rate
+            if self.rate > 0:
+                due = started + (stamp - first_stamp) * 1e-9 / self.rate
                 time.sleep(max(0.0, due - time.perf_counter()))
-            if not realtime and not recorder.wait_for(lambda: _described(received), 120.0, alive):
+            if not self.realtime and not self._wait(lambda: _described(received), 120.0):
                 print('skel-extract replay: the newest skeleton/structure was not described within 120 s; '
                       'going on', file=sys.stderr)
             received.published_at[stamp] = time.perf_counter()
-            if depth_image:   # the camera info at or before the image goes first
-                info = infos[max(int(np.searchsorted(info_stamps, original, side='right')) - 1, 0)]
-                recorder.info_publisher.publish(restamped(info[1], info_type, pass_index)[2])
-            recorder.publisher.publish(raw)
+            if self.depth_image:   # the camera info at or before the image goes first
+                info = self.infos[max(int(np.searchsorted(self.info_stamps, original, side='right')) - 1, 0)]
+                self.recorder.info_publisher.publish(restamped(info[1], self.info_type, pass_index)[2])
+            self.recorder.publisher.publish(raw)
             previous = stamp
-            if progress:
-                progress(index + 1, n_frames * loops)
-        if realtime:
+            if self.progress:
+                self.progress(index + 1, n_frames * self.loops)
+        if self.realtime:
             # frames may have been skipped, the last one too: wait until the nodes go quiet
             streamed_until = time.perf_counter()
             while True:
                 seen = len(received.registered_at) + len(received.filtered_at)
-                recorder.wait_for(lambda: len(received.registered_at) + len(received.filtered_at) > seen,
-                                  3.0, alive)
+                self._wait(lambda: len(received.registered_at) + len(received.filtered_at) > seen, 3.0)
                 if len(received.registered_at) + len(received.filtered_at) == seen:
-                    break
-        else:
-            recorder.wait_for(lambda: previous in received.filtered_at, frame_timeout, alive)
-            # the last registered frame must be in before the window is closed by hand; once a
-            # rest pose exists every frame is registered unless it fails (then nothing comes),
-            # and a busy machine can take seconds per frame
-            recorder.wait_for(lambda: previous in received.registered_at,
-                              frame_timeout if received.rest is not None else 5.0, alive)
-        streamed = (streamed_until if realtime else time.perf_counter()) - started
+                    return streamed_until
+        self._wait(lambda: previous in received.filtered_at, self.frame_timeout)
+        # the last registered frame must be in before the window is closed by hand; once a
+        # rest pose exists every frame is registered unless it fails (then nothing comes),
+        # and a busy machine can take seconds per frame
+        self._wait(lambda: previous in received.registered_at,
+                   self.frame_timeout if received.rest is not None else 5.0)
+        return time.perf_counter()
+
+    def _close_window(self) -> None:
+        """No structure yet (a bag shorter than the window): once the accumulator holds every
+        registered frame, ask it to extract, as `run` learns on all frames of a short bag."""
+        from std_srvs.srv import Trigger
+        received = self.received
         if not received.registered:
             raise ReplayError('no cloud was registered (no rest pose: is the subject in view? '
-                              f'{_log_tail(out / "logs" / "registration_node.log")})')
+                              f'{log_tail(self.out / "logs" / "registration_node.log")})')
         if received.structure is None:
             # the accumulator can be behind the recorder (and pairs complete in any order):
             # the window must hold every replayed frame, as `run`'s does (its 1 Hz diagnostics tell)
@@ -309,52 +293,35 @@ def replay(input_path, out, rate: float = 1.0, topic: str | None = None, params_
                 return bool(values) and int(values['frames']) >= min(int(values['window_size']),
                                                                     len(received.registered)) \
                     and int(values['newest_stamp_ns']) >= max(received.registered)
-            if not recorder.wait_for(collected, 10.0, alive):
+            if not self._wait(collected, 10.0):
                 print('skel-extract replay: the accumulator did not report every registered frame '
                       f'within 10 s ({received.accumulator.get("frames", "no")} frames); extracting anyway',
                       file=sys.stderr)
-            client = node.create_client(Trigger, 'accumulator_node/extract')
+            client = self.node.create_client(Trigger, 'accumulator_node/extract')
             if not client.wait_for_service(timeout_sec=30.0):
                 raise ReplayError('accumulator_node/extract is not available')
             future = client.call_async(Trigger.Request())
-            recorder.wait_for(future.done, 30.0, alive)
+            self._wait(future.done, 30.0)
             response = future.result()
             if response is None or not response.success:
                 raise ReplayError(f'accumulator_node/extract refused: {response.message if response else "no reply"}')
-        budget = 120.0 + 5.0 * len(received.registered)
-        if not recorder.wait_for(lambda: received.structure is not None, budget, alive):
-            raise ReplayError('no skeleton/structure: ' + _log_tail(out / 'logs' / 'accumulator_node.log', 1))
 
-        # lossless: every registered frame gets joints; realtime: the window's frames (Alg. 2
-        # answers them), the camera frames only as fast as the live fit goes
-        must_have = (received.structure['window_stamps_ns'] if realtime else received.registered)
+    def _wait_for_joints(self) -> None:
+        """Lossless: every registered frame has joints; realtime: the window's frames (Alg. 2
+        answers them), the camera frames only as fast as the live fit goes."""
+        received = self.received
+        budget = 120.0 + 5.0 * len(received.registered)
+        if not self._wait(lambda: received.structure is not None, budget):
+            raise ReplayError('no skeleton/structure: ' + log_tail(self.out / 'logs' / 'accumulator_node.log', 1))
+        must_have = received.structure['window_stamps_ns'] if self.realtime else received.registered
 
         def complete():
             # markers follow each joints message: the last ones must be in before the nodes stop
-            # (the sample bag's test once recorded 58 markers for 59 joints)
             return (received.description is not None and all(s in received.joints for s in must_have)
                     and received.counts.get('skeleton/markers', 0) >= received.counts.get('skeleton/joints', 0))
-        if not recorder.wait_for(complete, budget, alive):
+        if not self._wait(complete, budget):
             raise ReplayError('joints missing for some frames: '
-                              + _log_tail(out / 'logs' / 'joint_estimation_node.log', 1))
-    finally:
-        exit_codes = _stop_nodes(processes)
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.shutdown(context=context)
-        writer.close()
-        (recording / '.recording.mcap').replace(out / 'output.mcap')
-        shutil.rmtree(recording, ignore_errors=True)
-
-    summary = _write_files(received, out)
-    summary.update(_latencies(received, realtime))
-    if realtime:
-        summary['realtime'] = _camera_delivery(received, streamed)
-    summary['streamed_s'] = streamed
-    summary['clouds_per_s'] = n_frames * loops / streamed
-    summary['exit_codes'] = exit_codes
-    summary['counts'] = dict(received.counts)
-    return summary
+                              + log_tail(self.out / 'logs' / 'joint_estimation_node.log', 1))
 
 
 def _described(received: Received) -> bool:
