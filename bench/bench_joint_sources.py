@@ -26,7 +26,7 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / 'bench'))
 
 from bench_real_motion import half, simulate_and_run, subjects  # noqa: E402
-from skel_extract_ros.bag import read_cloud_frames, select_cloud_topic  # noqa: E402
+from skel_extract_ros.codecs.bag import read_cloud_frames, select_cloud_topic  # noqa: E402
 from skel_extract_ros.core.growth import GrowthSchedule  # noqa: E402
 from skel_extract_ros.core.pipeline import SkeletonPipeline  # noqa: E402
 from skel_extract_ros.evaluation import (GroundTruth, PredictedSkeleton, evaluate_joints,  # noqa: E402

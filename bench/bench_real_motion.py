@@ -105,7 +105,7 @@ def simulate_and_run(name: str, source_args: list, scene: str, frames: int, work
 def segmentation_scores(bag: Path, gt_path: Path) -> dict:
     """Per frame, against the simulator's per-pixel mask: the share of the measurable
     subject pixels kept and the share of kept pixels that are background; ms per frame."""
-    from skel_extract_ros.bag import read_cloud_frames
+    from skel_extract_ros.codecs.bag import read_cloud_frames
     from skel_extract_ros.core.segmentation import SubjectSegmenter
 
     data = np.load(gt_path)

@@ -68,10 +68,10 @@ def main() -> int:
     from rclpy.serialization import deserialize_message
     from sensor_msgs.msg import PointCloud2
 
-    from skel_extract_ros.bag import _raw_messages, select_cloud_topic
+    from skel_extract_ros.codecs.bag import _raw_messages, select_cloud_topic
     from skel_extract_ros.nodes.background import BackgroundNode
     from skel_extract_ros.nodes.common import SENSOR_QOS, STREAM_QOS
-    from skel_extract_ros.nodes.conversions import stamp_ns
+    from skel_extract_ros.codecs.messages import stamp_ns
 
     work = Path(args.work) if args.work else Path(tempfile.mkdtemp(prefix='bench_soak_'))
     work.mkdir(parents=True, exist_ok=True)

@@ -72,7 +72,7 @@ def _cmd_simulate(args) -> int:
           f'valid points per frame {counts.min()}-{counts.max()} (median {int(np.median(counts))}), '
           f'subject {subject.min()}-{subject.max()}; '
           f'{len(sequence.ground_truth["joint_names"])} ground-truth joints')
-    from .bag import select_cloud_topic
+    from .codecs.bag import select_cloud_topic
     print(f'bag: {out}  topic: {select_cloud_topic(out)}  ground truth: {gt_path}')
     return 0
 
@@ -109,7 +109,7 @@ def _parse_frame_range(text: str | None):
 def _cmd_run(args) -> int:
     import itertools
 
-    from .bag import BagError, cloud_topics, read_cloud_frames, select_cloud_topic
+    from .codecs.bag import BagError, cloud_topics, read_cloud_frames, select_cloud_topic
     from .core.pipeline import SkeletonPipeline
     from .core.structure import StructureError
     from .outputs import write_registered, write_skeleton
@@ -225,7 +225,7 @@ def _score_if_simulated(bag: Path, out: Path) -> None:
 
 
 def _cmd_replay(args) -> int:
-    from .bag import BagError
+    from .codecs.bag import BagError
     from .params import ParamsError
     from .progress import progress_bar
     from .replay import ReplayError, replay
@@ -289,7 +289,7 @@ def _cmd_record(args) -> int:
 
 
 def _cmd_info(args) -> int:
-    from .bag import BagError, read_cloud_frames, select_cloud_topic
+    from .codecs.bag import BagError, read_cloud_frames, select_cloud_topic
     try:
         topic = select_cloud_topic(args.input, args.topic)
         counts, stamps, frame_ids, layout = [], [], set(), None

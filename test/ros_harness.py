@@ -4,7 +4,6 @@ import os
 import threading
 import time
 
-import numpy as np
 import rclpy
 from rcl_interfaces.msg import Log
 from rclpy.executors import MultiThreadedExecutor
@@ -12,7 +11,7 @@ from rclpy.qos import QoSProfile
 from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Header
 
-from skel_extract_ros.pointcloud import encode_xyz
+from skel_extract_ros.codecs.pointcloud import pointcloud2
 
 # Stamps of the hand-made sequences: the first frame and the 30 Hz period, ns.
 T0 = 1_700_000_000_000_000_000
@@ -104,12 +103,7 @@ def header(stamp_ns, frame_id='camera_depth_optical_frame'):
 
 def cloud(points, stamp_ns, frame_id='camera_depth_optical_frame', point_step=16):
     """An organized (H, W, 3) or unorganized (N, 3) float32 PointCloud2."""
-    height, width, point_step, row_step, data, is_dense = encode_xyz(np.asarray(points), point_step)
-    msg = PointCloud2(header=header(stamp_ns, frame_id), height=height, width=width, point_step=point_step,
-                      row_step=row_step, is_dense=is_dense, is_bigendian=False)
-    msg.fields = [PointField(name=n, offset=4 * i, datatype=PointField.FLOAT32, count=1) for i, n in enumerate('xyz')]
-    msg.data = data
-    return msg
+    return pointcloud2(PointCloud2, PointField, header(stamp_ns, frame_id), points, point_step)
 
 
 def stamps_of(messages):

@@ -12,7 +12,7 @@ from ros_harness import DT, T0, header, stamps_of
 from skel_extract_ros.core.structure import StructureParams, extract_structure
 from skel_extract_ros.nodes.accumulator_node import AccumulatorNode
 from skel_extract_ros.nodes.common import LATCHED_QOS, STREAM_QOS
-from skel_extract_ros.nodes.conversions import cloud_message, parse_structure, structure_document
+from skel_extract_ros.codecs.messages import cloud_message, parse_structure, structure_document
 from skel_extract_ros.nodes.joint_estimation_node import JointEstimationNode
 from test_growth import three_part_chain
 from two_bone import two_bone_sequence

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from skel_extract_ros.bag import (BagError, cloud_topics, read_cloud_frames, select_cloud_topic,
+from skel_extract_ros.codecs.bag import (BagError, cloud_topics, read_cloud_frames, select_cloud_topic,
                                   typestore, write_cloud_bag)
 from rosbags.rosbag2 import StoragePlugin, Writer
 
@@ -23,7 +23,7 @@ def test_round_trip_directory_and_bare_mcap(tmp_path):
 
 
 def test_sqlite3_bag_is_read(tmp_path):
-    from skel_extract_ros.bag import _make_pointcloud2
+    from skel_extract_ros.codecs.bag import _make_pointcloud2
     store = typestore()
     path = tmp_path / 'sqlite_bag'
     with Writer(path, version=8, storage_plugin=StoragePlugin.SQLITE3) as writer:

@@ -90,7 +90,7 @@ def test_run_on_the_sample_bag_end_to_end(sample_run, sample_bag):
 def test_run_says_plainly_when_nothing_moves(tmp_path):
     """A still subject: nobody is found (nothing moved); with the segmentation off it is
     registered, but no bones can be separated. Each says so in one line."""
-    from skel_extract_ros.bag import write_cloud_bag
+    from skel_extract_ros.codecs.bag import write_cloud_bag
     from skel_extract_ros.sim import generate_sequence
     seq = generate_sequence('fish', 1, seed=3, progress=False)
     bag = write_cloud_bag(tmp_path / 'still', [seq.clouds[0]] * 12,

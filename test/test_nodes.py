@@ -23,10 +23,10 @@ from skel_extract_ros.core.structure import StructureParams, extract_structure
 from skel_extract_ros.nodes.accumulator_node import AccumulatorNode
 from skel_extract_ros.nodes.common import LATCHED_QOS, STREAM_QOS, ParameterError
 from skel_extract_ros.nodes import joint_estimation_node, skeleton_output
-from skel_extract_ros.nodes.conversions import cloud_message, skeleton_markers, structure_document
+from skel_extract_ros.codecs.messages import cloud_message, skeleton_markers, structure_document
 from skel_extract_ros.nodes.joint_estimation_node import JointEstimationNode
 from skel_extract_ros.nodes.registration_node import RegistrationNode
-from skel_extract_ros.pointcloud import decode_xyz
+from skel_extract_ros.codecs.pointcloud import decode_xyz
 from skel_extract_ros.sim import NoiseModel, generate_sequence
 from two_bone import two_bone_sequence
 

@@ -4,7 +4,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from skel_extract_ros.pointcloud import CloudDecodeError, decode_xyz, encode_xyz, finite_points
+from skel_extract_ros.codecs.pointcloud import CloudDecodeError, decode_xyz, encode_xyz, finite_points
 
 
 def make_msg(points, point_step=16, dtype='<f4', offsets=(0, 4, 8), height=1, big_endian=False,

@@ -44,7 +44,7 @@ def test_status_is_short_and_its_links_land_on_bench_headings():
 def test_colcon_comes_before_the_live_camera_and_the_examples_match_the_sample_bag():
     assert README.index('## Building with colcon') < README.index('## Running against a live camera')
     # the bag's topics are depth images: the replay example says so
-    from skel_extract_ros.bag import cloud_topics
+    from skel_extract_ros.codecs.bag import cloud_topics
     topics = cloud_topics(ROOT / 'bags' / 'sample_wave')
     assert list(topics) == ['/camera/depth/image_raw']
     assert 'ros2 bag play bags/sample_wave --clock' in README

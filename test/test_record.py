@@ -10,7 +10,7 @@ import pytest
 import yaml
 from scipy.spatial.transform import Rotation
 
-from skel_extract_ros.bag import _raw_messages, topic_counts
+from skel_extract_ros.codecs.bag import _raw_messages, topic_counts
 from skel_extract_ros.params import DEFAULT_PARAMS_FILE
 
 from conftest import CLI, run_cli

@@ -6,7 +6,7 @@ import re
 import numpy as np
 import pytest
 
-from skel_extract_ros.bag import topic_counts
+from skel_extract_ros.codecs.bag import topic_counts
 
 from conftest import SHARED_DATA, check_sample_scores, run_cli, run_cli_private_domain
 
@@ -140,7 +140,7 @@ def test_looped_stamps_move_on_by_a_period_across_passes_and_bounce_mirrors():
 def test_bounce_refuses_a_bag_larger_than_half_the_available_memory(sample_bag, monkeypatch):
     """--bounce holds the bag's messages; one that would not fit says so before any node starts."""
     from skel_extract_ros import replay as replay_module
-    from skel_extract_ros.bag import select_cloud_topic
+    from skel_extract_ros.codecs.bag import select_cloud_topic
     topic = select_cloud_topic(sample_bag, None)
     assert len(replay_module._held_messages(sample_bag, topic)) == 60
     monkeypatch.setattr(replay_module, '_available_memory_bytes', lambda: 2_000_000)

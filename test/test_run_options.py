@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from conftest import run_cli, run_cli_private_domain
-from skel_extract_ros.bag import topic_counts, write_cloud_bag
+from skel_extract_ros.codecs.bag import topic_counts, write_cloud_bag
 from skel_extract_ros.sim import generate_sequence
 
 

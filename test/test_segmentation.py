@@ -7,7 +7,7 @@ from skel_extract_ros.core.segmentation import (STATUS_NOBODY, STATUS_SUBJECT, S
                                                 SubjectSegmenter)
 from skel_extract_ros.core.sequence import SequenceRegistration
 from skel_extract_ros.core.stream import split_layout
-from skel_extract_ros.depth_image import (DepthDecodeError, back_project, decode_depth, depth_to_cloud,
+from skel_extract_ros.codecs.depth_image import (DepthDecodeError, back_project, decode_depth, depth_to_cloud,
                                           encode_depth)
 from skel_extract_ros.sim import generate_sequence
 

@@ -8,11 +8,11 @@ from std_srvs.srv import Trigger
 from ros_harness import cloud, header, stamps_of
 from skel_extract_ros.core.segmentation import SegmentationParams
 from skel_extract_ros.core.sequence import SequenceRegistration
-from skel_extract_ros.depth_image import encode_depth
+from skel_extract_ros.codecs.depth_image import encode_depth
 from skel_extract_ros.nodes.common import LATCHED_QOS, STREAM_QOS
 from skel_extract_ros.nodes.registration_node import RegistrationNode
 from skel_extract_ros.core.rest_pose import RestPoseParams
-from skel_extract_ros.pointcloud import decode_xyz
+from skel_extract_ros.codecs.pointcloud import decode_xyz
 from skel_extract_ros.sim import generate_sequence
 
 from rclpy.parameter import Parameter
@@ -119,7 +119,7 @@ def test_node_reads_depth_images(ros, walk_in):
         depths.append(points)
     ros.wait(lambda: len(registered) >= 1, what='registered frames')
     # the depth-image path is the cloud path after millimetre rounding
-    from skel_extract_ros.depth_image import back_project, decode_depth
+    from skel_extract_ros.codecs.depth_image import back_project, decode_depth
     _, _, fx, fy, cx, cy = walk_in.ground_truth['intrinsics']
     rounded = [back_project(decode_depth(depth_messages(c[..., 2], 0, walk_in.ground_truth['intrinsics'])[0]),
                             fx, fy, cx, cy) for c in walk_in.clouds]

@@ -7,7 +7,7 @@ from ros_harness import T0, DT, header
 from skel_extract_ros.core.confidence import HALF_RESIDUAL, MIN_SAMPLES, bone_confidence, joint_confidence
 from skel_extract_ros.core.live import LiveJointTracker
 from skel_extract_ros.core.skeleton_model import SkeletonModel
-from skel_extract_ros.nodes.conversions import skeleton_markers
+from skel_extract_ros.codecs.messages import skeleton_markers
 from skel_extract_ros.nodes.skeleton_output import MAX_VELOCITY_GAP_S, FrameVelocities
 from two_bone import two_bone_sequence
 

@@ -4,7 +4,7 @@ Subscribes  registered_points, filtered_points (PointCloud2, reliable), paired b
             rest_points (PointCloud2, transient local): a new rest pose starts a new skeleton
 Publishes   skeleton/structure (std_msgs/String JSON, transient local): bones, bone tree,
             per-point labels, stable joint ids, what changed, and the stamps of the key
-            frames it was learned on (see conversions.structure_document)
+            frames it was learned on (see codecs.messages.structure_document)
 Service     ~/extract (std_srvs/Trigger): extract now from the frames collected so far
 
 Every window (and with `sliding`, every `stride` frames after it) goes into one growing
@@ -31,7 +31,7 @@ from ..core.structure import StructureError, StructureParams
 from ..params import schedule_from_dict, structure_params_from_dict
 from .common import (LATCHED_QOS, STREAM_QOS, StampPairer, ThrottledLog, WorkingNode, declare_node_parameters,
                      decode_or_warn, decode_registered_or_warn, on_live_parameters, release_freed_memory, run_node)
-from .conversions import stamp_ns, structure_document
+from ..codecs.messages import stamp_ns, structure_document
 from .diagnostics import OK, WARN, NodeDiagnostics
 from .worker import RateMeter, Worker
 

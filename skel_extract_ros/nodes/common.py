@@ -170,7 +170,7 @@ def decode_or_warn(msg, log: ThrottledLog, what: str, dtype=None):
     the topic; dtype defaults to float32 (float64 for the exact rest points)."""
     import numpy as np
 
-    from ..pointcloud import CloudDecodeError, decode_xyz
+    from ..codecs.pointcloud import CloudDecodeError, decode_xyz
     try:
         return decode_xyz(msg, dtype=dtype or np.float32)
     except CloudDecodeError as error:

@@ -59,7 +59,7 @@ from ..params import joint_params_from_dict
 from .common import (LATCHED_QOS, STREAM_QOS, ParameterError, StampPairer, ThrottledLog, WorkingNode,
                      declare_node_parameters, decode_or_warn, decode_registered_or_warn, on_live_parameters,
                      release_freed_memory, run_node)
-from .conversions import cloud_message, parse_structure, stamp_ns
+from ..codecs.messages import cloud_message, parse_structure, stamp_ns
 from .diagnostics import OK, WARN, NodeDiagnostics
 from .skeleton_output import SkeletonOutput, registered_hints
 from .worker import RateMeter, Worker

@@ -40,12 +40,12 @@ from ..core.preprocess import PreprocessParams
 from ..core.registration import RegistrationParams
 from ..core.rest_pose import RestPoseParams
 from ..core.segmentation import SegmentationParams
-from ..depth_image import DepthDecodeError, depth_to_cloud
+from ..codecs.depth_image import DepthDecodeError, depth_to_cloud
 from ..params import NODE_ONLY, registration_params_from_dict
-from ..pointcloud import CloudDecodeError, decode_xyz
+from ..codecs.pointcloud import CloudDecodeError, decode_xyz
 from .common import (LATCHED_QOS, SENSOR_QOS, STREAM_QOS, ParameterError, ThrottledLog, WorkingNode, declare,
                      declare_dataclass, decode_or_warn, run_node)
-from .conversions import cloud_message, stamp_ns
+from ..codecs.messages import cloud_message, stamp_ns
 from .diagnostics import OK, WARN, NodeDiagnostics
 from .registration_stages import RegistrationStages, StageSettings
 

@@ -25,7 +25,7 @@ from ..core.segmentation import STATUS_NOBODY
 from ..core.stream import (ORDER_REPEATED, ORDER_WENT_BACK, PARTIAL_VIEW_PATIENCE_FRAMES, WAIT_FEW_POINTS,
                            WAIT_PARTIAL, WAIT_REST_POSE_FAILED, FrameRegistrar, StampOrder, SubjectFinder)
 from .common import release_freed_memory
-from .conversions import stamp_ns
+from ..codecs.messages import stamp_ns
 from .registration_process import (REST_POSE_IDLE_RELEASE_S, ChildProcessDied, RegistrationProcess,
                                    RestPoseProcess)
 from .worker import Worker

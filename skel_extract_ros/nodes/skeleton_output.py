@@ -40,7 +40,7 @@ from visualization_msgs.msg import MarkerArray
 from ..bvh_export import bone_rotations, point_fit_rotations
 from ..core.skeleton_model import SkeletonModel
 from .common import LATCHED_QOS, STREAM_QOS
-from .conversions import description_document, pose_array, skeleton_markers, stamp_ns
+from ..codecs.messages import description_document, pose_array, skeleton_markers, stamp_ns
 
 # consecutive frames further apart than this get no velocities (a gap in the data: a
 # finite difference over it is not a velocity)

@@ -87,8 +87,8 @@ class _Recorder:
                                      LATCHED_QOS if latched else STREAM_QOS, raw=True)
 
     def _on_message(self, topic: str, type_name: str, raw: bytes) -> None:
-        from ..nodes.conversions import pose_array_positions, stamp_ns
-        from ..pointcloud import decode_xyz
+        from ..codecs.messages import pose_array_positions, stamp_ns
+        from ..codecs.pointcloud import decode_xyz
         now = time.perf_counter()
         self.writer.write(self.connections[topic], time.time_ns(), raw)
         # markers, trajectory and confidence are recorded only: the files do not need them

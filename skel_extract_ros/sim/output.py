@@ -5,7 +5,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..bag import DEFAULT_DEPTH_TOPIC, DEFAULT_TOPIC, write_cloud_bag, write_depth_bag
+from ..codecs.bag import DEFAULT_DEPTH_TOPIC, DEFAULT_TOPIC, write_cloud_bag, write_depth_bag
 from .render import SimulatedSequence
 
 GT_FILENAME = 'gt.npz'

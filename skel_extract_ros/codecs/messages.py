@@ -15,10 +15,10 @@ from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import ColorRGBA, Header
 from visualization_msgs.msg import Marker, MarkerArray
 
-from ..bag import stamp_to_ns
+from .bag import stamp_to_ns
 from ..core.skeleton_model import SkeletonModel
 from ..core.structure import SkeletalStructure
-from ..pointcloud import encode_xyz
+from .pointcloud import pointcloud2
 
 # 2: the bones' rigid fits at the key frames (rotations, translations) added
 STRUCTURE_VERSION = 2
@@ -32,23 +32,7 @@ def stamp_ns(header) -> int:
 def cloud_message(points: np.ndarray, header: Header, float64: bool = False) -> PointCloud2:
     """(N, 3) points as an unorganized PointCloud2 with `header`; float64 fields when exact
     values matter (the rest points, which every downstream step starts from)."""
-    points = np.asarray(points)
-    msg = PointCloud2(header=header)
-    if float64:
-        values = np.ascontiguousarray(points, dtype='<f8').reshape(-1, 3)
-        msg.height, msg.width, msg.point_step = 1, len(values), 24
-        msg.row_step, msg.is_dense = 24 * len(values), bool(np.isfinite(values).all())
-        msg.fields = [PointField(name=n, offset=8 * i, datatype=PointField.FLOAT64, count=1)
-                      for i, n in enumerate('xyz')]
-        msg.data = values.tobytes()
-    else:
-        height, width, point_step, row_step, data, is_dense = encode_xyz(points.reshape(-1, 3), 16)
-        msg.height, msg.width, msg.point_step, msg.row_step, msg.is_dense = height, width, point_step, row_step, is_dense
-        msg.fields = [PointField(name=n, offset=4 * i, datatype=PointField.FLOAT32, count=1)
-                      for i, n in enumerate('xyz')]
-        msg.data = data
-    msg.is_bigendian = False
-    return msg
+    return pointcloud2(PointCloud2, PointField, header, np.asarray(points).reshape(-1, 3), 16, float64)
 
 
 def structure_document(structure: SkeletalStructure, rest_stamp_ns: int, window_stamps_ns, frame_id: str,

@@ -16,7 +16,7 @@ from rosbags.rosbag2 import CompressionFormat, CompressionMode, Reader, StorageP
 from rosbags.typesys import Stores, get_typestore
 
 from .depth_image import DepthDecodeError, depth_to_cloud, encode_depth
-from .pointcloud import CloudDecodeError, decode_xyz, encode_xyz, xyz_cloud_fields
+from .pointcloud import CloudDecodeError, decode_xyz, pointcloud2
 
 POINTCLOUD2 = 'sensor_msgs/msg/PointCloud2'
 IMAGE = 'sensor_msgs/msg/Image'
@@ -63,18 +63,13 @@ def stamp_to_ns(stamp) -> int:
 
 
 def _make_pointcloud2(points: np.ndarray, stamp_ns: int, frame_id: str, point_step: int = 16):
-    store = typestore()
-    types = store.types
-    height, width, point_step, row_step, data, is_dense = encode_xyz(points, point_step)
+    types = typestore().types
     header = types['std_msgs/msg/Header'](
         stamp=types['builtin_interfaces/msg/Time'](sec=stamp_ns // 1_000_000_000,
                                                    nanosec=stamp_ns % 1_000_000_000),
         frame_id=frame_id)
-    fields = [types['sensor_msgs/msg/PointField'](name=n, offset=o, datatype=d, count=c)
-              for n, o, d, c in xyz_cloud_fields(point_step)]
-    return types[POINTCLOUD2](header=header, height=height, width=width, fields=fields,
-                              is_bigendian=False, point_step=point_step, row_step=row_step,
-                              data=np.frombuffer(data, dtype=np.uint8), is_dense=is_dense)
+    return pointcloud2(types[POINTCLOUD2], types['sensor_msgs/msg/PointField'], header, points, point_step,
+                       data_as_array=True)
 
 
 def write_cloud_bag(path, clouds, stamps_ns, frame_id: str, topic: str = DEFAULT_TOPIC,

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .core.point_sets import finite_rows
+from ..core.point_sets import finite_rows
 
 # sensor_msgs/PointField datatypes
 INT8, UINT8, INT16, UINT16, INT32, UINT32, FLOAT32, FLOAT64 = range(1, 9)
@@ -77,28 +77,42 @@ def finite_points(points: np.ndarray) -> np.ndarray:
     return points[finite_rows(points)]
 
 
-def xyz_cloud_fields(point_step: int = 16):
-    """(name, offset, datatype, count) of an x, y, z float32 cloud (OpenNI-style padding)."""
-    if point_step < 12:
-        raise ValueError('point_step must be at least 12 bytes for x, y, z float32')
-    return [('x', 0, FLOAT32, 1), ('y', 4, FLOAT32, 1), ('z', 8, FLOAT32, 1)]
+def xyz_cloud_fields(float64: bool = False) -> list:
+    """(name, offset, datatype, count) of an x, y, z cloud, float32 or float64."""
+    size, datatype = (8, FLOAT64) if float64 else (4, FLOAT32)
+    return [(name, size * i, datatype, 1) for i, name in enumerate('xyz')]
 
 
-def encode_xyz(points: np.ndarray, point_step: int = 16) -> tuple:
-    """Pack (H, W, 3) or (N, 3) points as PointCloud2 payload.
+def encode_xyz(points: np.ndarray, point_step: int = 16, float64: bool = False) -> tuple:
+    """Pack (H, W, 3) or (N, 3) points as PointCloud2 payload: float32 x, y, z padded to
+    point_step bytes (OpenNI-style), or with float64 packed float64 (point_step 24).
 
     Returns (height, width, point_step, row_step, data bytes, is_dense). An (N, 3) array
     gives an unorganized cloud (height 1).
     """
-    points = np.asarray(points, dtype=np.float32)
+    points = np.asarray(points, dtype=np.float64 if float64 else np.float32)
     if points.ndim == 2:
         points = points[None]
     if points.ndim != 3 or points.shape[2] != 3:
         raise ValueError(f'points must be (N, 3) or (H, W, 3), got {points.shape}')
     height, width = points.shape[:2]
-    if point_step % 4 or point_step < 12:
+    if float64:
+        point_step = 24
+    elif point_step % 4 or point_step < 12:
         raise ValueError('point_step must be a multiple of 4 and at least 12')
-    packed = np.zeros((height, width, point_step // 4), dtype=np.float32)
+    packed = np.zeros((height, width, point_step // points.itemsize), dtype=points.dtype.newbyteorder('<'))
     packed[..., :3] = points
     is_dense = bool(np.isfinite(points).all())
     return height, width, point_step, width * point_step, packed.tobytes(), is_dense
+
+
+def pointcloud2(cloud_type, field_type, header, points: np.ndarray, point_step: int = 16,
+                float64: bool = False, data_as_array: bool = False):
+    """The one PointCloud2 builder: a message of cloud_type with fields of field_type (the
+    rclpy classes, or the rosbags typestore's), its header, and the points encoded by
+    encode_xyz. data_as_array: the payload as a uint8 numpy array (rosbags), else bytes."""
+    height, width, point_step, row_step, data, is_dense = encode_xyz(points, point_step, float64)
+    fields = [field_type(name=n, offset=o, datatype=d, count=c) for n, o, d, c in xyz_cloud_fields(float64)]
+    return cloud_type(header=header, height=height, width=width, fields=fields, is_bigendian=False,
+                      point_step=point_step, row_step=row_step, is_dense=is_dense,
+                      data=np.frombuffer(data, dtype=np.uint8) if data_as_array else data)
