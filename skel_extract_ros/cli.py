@@ -113,7 +113,7 @@ def _cmd_run(args) -> int:
     from .core.pipeline import SkeletonPipeline
     from .core.structure import StructureError
     from .outputs import write_registered, write_skeleton
-    from .params import ParamsError, load_params_file, pipeline_params
+    from .config import ParamsError, load_params_file, pipeline_params
     from .progress import progress_bar
 
     out = Path(args.out)
@@ -226,7 +226,7 @@ def _score_if_simulated(bag: Path, out: Path) -> None:
 
 def _cmd_replay(args) -> int:
     from .bag import BagError
-    from .params import ParamsError
+    from .config import ParamsError
     from .progress import progress_bar
     from .replay import ReplayError, replay
 

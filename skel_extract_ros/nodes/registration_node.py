@@ -57,16 +57,15 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
-from ..core.preprocess import PreprocessParams, Preprocessor
-from ..core.registration import STATUS_OK, NonRigidRegistration, RegistrationParams
-from ..core.rest_pose import RestPoseError, RestPoseParams
-from ..core.segmentation import STATUS_NOBODY, SegmentationParams, SubjectSegmenter
+from ..core.preprocess import Preprocessor
+from ..core.registration import STATUS_OK, NonRigidRegistration
+from ..core.rest_pose import RestPoseError
+from ..core.segmentation import STATUS_NOBODY, SubjectSegmenter
 from ..core.sequence import PARTIAL_VIEW_PATIENCE_FRAMES, RestPoseGate
 from ..depth_image import DepthDecodeError, depth_to_cloud
-from ..params import NODE_ONLY, registration_params_from_dict
 from ..pointcloud import CloudDecodeError, decode_xyz
-from .common import (LATCHED_QOS, SENSOR_QOS, STREAM_QOS, ParameterError, ThrottledLog, WorkingNode, declare,
-                     declare_dataclass, decode_or_warn, release_freed_memory, run_node)
+from .common import (LATCHED_QOS, SENSOR_QOS, STREAM_QOS, ThrottledLog, WorkingNode, declare_params, decode_or_warn,
+                     release_freed_memory, run_node)
 from .conversions import cloud_message, stamp_ns
 from .diagnostics import OK, WARN, NodeDiagnostics
 from .registration_process import ChildProcessDied, RegistrationProcess, RestPoseProcess
@@ -95,29 +94,13 @@ class _SubjectFrame:
 class RegistrationNode(WorkingNode):
     def __init__(self, **kwargs):
         super().__init__('registration_node', **kwargs)
-        values = declare_dataclass(self, SECTION, RegistrationParams)
-        values['rest_pose'] = declare_dataclass(self, SECTION, RestPoseParams, 'rest_pose.')
-        values['preprocess'] = declare_dataclass(self, SECTION, PreprocessParams, 'preprocess.')
-        values['segmentation'] = declare_dataclass(self, SECTION, SegmentationParams, 'segmentation.')
-        self.queue_size = declare(self, SECTION, 'queue_size', NODE_ONLY[SECTION]['queue_size'])
-        self.learning_queue_size = declare(self, SECTION, 'learning_queue_size',
-                                           NODE_ONLY[SECTION]['learning_queue_size'])
-        self.lossless = declare(self, SECTION, 'lossless', NODE_ONLY[SECTION]['lossless'])
-        reliability = declare(self, SECTION, 'input_reliability', NODE_ONLY[SECTION]['input_reliability'])
-        if reliability not in ('best_effort', 'reliable'):
-            raise ParameterError(f"parameter input_reliability must be 'best_effort' or 'reliable', "
-                                 f'got {reliability!r}')
-        self.input = declare(self, SECTION, 'input', NODE_ONLY[SECTION]['input'])
-        if self.input not in ('cloud', 'depth_image'):
-            raise ParameterError(f"parameter input must be 'cloud' or 'depth_image', got {self.input!r}")
-        niceness = declare(self, SECTION, 'registration_niceness', NODE_ONLY[SECTION]['registration_niceness'])
-        sched_idle = declare(self, SECTION, 'registration_sched_idle', NODE_ONLY[SECTION]['registration_sched_idle'])
-        self.live_start = declare(self, SECTION, 'live_start', NODE_ONLY[SECTION]['live_start'])
-        try:
-            (self.params, self.rest_params, self.preprocess_params,
-             self.segmentation_params) = registration_params_from_dict(values)
-        except ValueError as error:
-            raise ParameterError(str(error)) from None
+        params = declare_params(self, SECTION)
+        self.params, self.rest_params = params['registration'], params['rest_pose']
+        self.preprocess_params, self.segmentation_params = params['preprocess'], params['segmentation']
+        own = params['node']
+        self.queue_size, self.learning_queue_size, self.lossless = own.queue_size, own.learning_queue_size, own.lossless
+        reliability, self.input, self.live_start = own.input_reliability, own.input, own.live_start
+        niceness, sched_idle = own.registration_niceness, own.registration_sched_idle
         self.log = ThrottledLog(self.get_logger())
         self.registered_pub = self.create_publisher(PointCloud2, 'registered_points', STREAM_QOS)
         self.filtered_pub = self.create_publisher(PointCloud2, 'filtered_points', STREAM_QOS)

@@ -51,7 +51,7 @@ def use_large_message_profile() -> None:
     FASTRTPS_DEFAULT_PROFILES_FILE to the packaged 4 MB profile unless it or
     FASTDDS_DEFAULT_PROFILES_FILE is set; call before rclpy.init (Fast DDS reads it once),
     the nodes started after inherit it."""
-    from ..params import fastdds_profile_file
+    from ..config import fastdds_profile_file
     profile = fastdds_profile_file()
     if profile is not None and not (os.environ.get('FASTRTPS_DEFAULT_PROFILES_FILE')
                                     or os.environ.get('FASTDDS_DEFAULT_PROFILES_FILE')):
@@ -164,7 +164,7 @@ def replay(input_path, out, rate: float = 1.0, topic: str | None = None, params_
     from ..nodes.conversions import stamp_ns
 
     from ..bag import _raw_messages, camera_info_topic, cloud_topics, is_depth_topic, select_cloud_topic, typestore
-    from ..params import default_params_file, load_params_file
+    from ..config import default_params_file, load_params_file
 
     input_path, out = Path(input_path), Path(out)
     if rate < 0:
