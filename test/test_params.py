@@ -9,6 +9,7 @@ import yaml
 from skel_extract_ros.config import (DEFAULT_PARAMS_FILE, NODES, ParamsError, declarations, load_params_file,
                                      node_params, parameter_defaults, pipeline_params)
 from skel_extract_ros.config.docs import markdown_table, params_yaml, readme_with_tables, ros_description
+from skel_extract_ros.config.nodes import LIVE_FROM
 from skel_extract_ros.config.values import from_ros
 from skel_extract_ros.core.parameters import INF, spec
 
@@ -171,6 +172,9 @@ def test_readme_tables_are_generated_from_the_same_metadata():
             default = str(d.default).lower() if isinstance(d.default, bool) else str(d.default)
             assert f'| `{d.name}` | `{default}` | {live} | {d.spec.description} |' in table
     assert '| `max_iterations` | `10` | yes |' in markdown_table('joint_estimation_node')
+    # a node with live parameters says from when they apply; one without says all are read-only
+    assert set(LIVE_FROM) == {node for node in NODES if any(d.spec.live for d in declarations(node))}
+    assert 'Every parameter of this node is read-only' in markdown_table('registration_node')
     with pytest.raises(ValueError, match='no block'):
         readme_with_tables(readme.replace('<!-- /parameters:accumulator_node -->', ''))
 

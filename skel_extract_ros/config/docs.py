@@ -37,10 +37,11 @@ def _format_default(value) -> str:
 def markdown_table(node: str) -> str:
     """The README table of a node's parameters: name, default, live, meaning (with unit)."""
     lines = ['| parameter | default | live | meaning (unit) |', '|---|---|---|---|']
-    for d in declarations(node):
+    node_declarations = declarations(node)
+    for d in node_declarations:
         live = 'yes' if d.spec.live else ''
         lines.append(f'| `{d.name}` | `{_format_default(d.default)}` | {live} | {d.spec.description} |')
-    if node in LIVE_FROM:
+    if any(d.spec.live for d in node_declarations):
         lines.append(f'\n`live`: `ros2 param set` applies it from {LIVE_FROM[node]}; the others are '
                      'read-only (a set fails with the reason).')
     else:

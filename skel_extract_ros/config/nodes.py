@@ -118,8 +118,8 @@ NODES = {
                               Section(NODE_KEY, JointNodeParams, title='the node: live fit, buffer, markers')),
 }
 
-# When a running node applies its live parameters (field metadata `live`); a node without
-# any has none.
+# When a running node applies its live parameters (field metadata `live`), for every node
+# that has any (the README says it).
 LIVE_FROM = {'accumulator_node': 'the next registered frame',
              'joint_estimation_node': 'the next frame (joint_diameter, live_iterations, live_sweeps, buffer_size) '
                                       "or the next skeleton/structure (the method's parameters, "

@@ -70,12 +70,14 @@ def parameter_defaults(node: str) -> dict:
     return {d.name: d.default for d in declarations(node)}
 
 
+_PREFIXES = {section.prefix for sections in NODES.values() for section in sections if section.prefix}
+
+
 def _flat(values: dict, prefix: str = '') -> dict:
-    """Nested YAML mappings as dotted names (an empty section is no parameter)."""
+    """Nested YAML mappings as dotted names (an empty section, `rest_pose:`, is no parameter)."""
     flat = {}
     for key, value in values.items():
-        if isinstance(value, dict) or (value is None and any(s.prefix == f'{prefix}{key}.' for v in NODES.values()
-                                                             for s in v)):
+        if isinstance(value, dict) or (value is None and f'{prefix}{key}.' in _PREFIXES):
             flat.update(_flat(value or {}, f'{prefix}{key}.'))
         else:
             flat[prefix + key] = value
