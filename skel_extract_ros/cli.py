@@ -110,10 +110,10 @@ def _cmd_run(args) -> int:
     import itertools
 
     from .bag import BagError, cloud_topics, read_cloud_frames, select_cloud_topic
+    from .config import ParamsError, load_params_file, pipeline_params
     from .core.pipeline import SkeletonPipeline
     from .core.structure import StructureError
     from .outputs import write_registered, write_skeleton
-    from .config import ParamsError, load_params_file, pipeline_params
     from .progress import progress_bar
 
     out = Path(args.out)

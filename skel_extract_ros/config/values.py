@@ -84,18 +84,17 @@ def _flat(values: dict, prefix: str = '') -> dict:
     return flat
 
 
-def node_params(node: str, values: dict, where: str | None = None) -> dict:
+def node_params(node: str, values: dict) -> dict:
     """{section key: dataclass} of a node from {name: value} (dotted names or nested
     mappings; a missing name takes its default). ParamsError (a ValueError) names the
     node, the section and the parameter that is unknown or out of range."""
-    where = where or node
     values = _flat(values)
     fields = {d.name: d.section for d in declarations(node)}
     unknown = sorted(set(values) - set(fields))
     if unknown:
         prefix = unknown[0].rpartition('.')[0]
         valid = sorted(n for n in fields if n.rpartition('.')[0] == prefix)
-        raise ParamsError(f'{where}: unknown parameter(s) {", ".join(unknown)}; valid: {", ".join(valid)}')
+        raise ParamsError(f'{node}: unknown parameter(s) {", ".join(unknown)}; valid: {", ".join(valid)}')
     built = {}
     for section in NODES[node]:
         cls_fields = {f.name: f for f in dataclasses.fields(section.cls)}
@@ -103,8 +102,8 @@ def node_params(node: str, values: dict, where: str | None = None) -> dict:
         try:
             built[section.key] = section.cls(**{k: from_ros(cls_fields[k], v) for k, v in mine.items()})
         except (TypeError, ValueError) as error:
-            raise ParamsError(f'{where}{"." + section.prefix.rstrip(".") if section.prefix else ""}: {error}') \
-                from error
+            where = node + ('.' + section.prefix.rstrip('.') if section.prefix else '')
+            raise ParamsError(f'{where}: {error}') from error
     return built
 
 
