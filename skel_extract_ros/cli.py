@@ -110,10 +110,10 @@ def _cmd_run(args) -> int:
     import itertools
 
     from .codecs.bag import BagError, cloud_topics, read_cloud_frames, select_cloud_topic
+    from .config import ParamsError, load_params_file, pipeline_params
     from .core.pipeline import SkeletonPipeline
     from .core.structure import StructureError
     from .outputs import write_registered, write_skeleton
-    from .params import ParamsError, load_params_file, pipeline_params
     from .progress import progress_bar
 
     out = Path(args.out)
@@ -226,7 +226,7 @@ def _score_if_simulated(bag: Path, out: Path) -> None:
 
 def _cmd_replay(args) -> int:
     from .codecs.bag import BagError
-    from .params import ParamsError
+    from .config import ParamsError
     from .progress import progress_bar
     from .replay import ReplayError, replay
 

@@ -11,7 +11,7 @@ import yaml
 from scipy.spatial.transform import Rotation
 
 from skel_extract_ros.codecs.bag import _raw_messages, topic_counts
-from skel_extract_ros.params import DEFAULT_PARAMS_FILE
+from skel_extract_ros.config import DEFAULT_PARAMS_FILE
 
 from conftest import CLI, run_cli
 

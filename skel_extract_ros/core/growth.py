@@ -31,6 +31,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from .joints import JointEstimate, JointEstimation, JointParams
+from .parameters import parameter, validate
 from .rigid import fit_rigid_segments
 from .skeleton_model import SkeletonModel
 from .structure import SkeletalStructure, StructureParams, extract_structure
@@ -48,13 +49,14 @@ class GrowthSchedule:
     compete for the key frames). A window that shows no articulation is retried on the
     next `window_size` frames (without sliding) or at the next stride."""
 
-    window_size: int = 60
-    sliding: bool = False
-    stride: int = 30
+    window_size: int = parameter(60, 'registered frames collected before the skeletal structure is extracted',
+                                 2, 100_000, live=True)
+    sliding: bool = parameter(False, 'keep growing the skeleton: every `stride` frames the last window_size '
+                              'frames compete for the key frames and the structure is learned again', live=True)
+    stride: int = parameter(30, 'registered frames between extractions when sliding', 1, 100_000, live=True)
 
     def __post_init__(self):
-        if self.window_size < 2 or self.stride < 1:
-            raise ValueError(f'window_size must be >= 2 and stride >= 1, got {self.window_size} and {self.stride}')
+        validate(self)
 
     def due(self, since_extraction: int, extracted_once: bool) -> bool:
         """Whether to learn now, `since_extraction` frames after the last extraction (or

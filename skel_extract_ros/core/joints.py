@@ -35,6 +35,7 @@ import numpy as np
 from .articulated import BoneBlocks, blend, dense_weights, influenced_positions
 from .gmm import CandidateCache
 from .parallel import parallel_map
+from .parameters import INF, parameter, validate
 from .point_sets import median_spacing
 from .joint_centres import joint_trajectories, solve_joints
 from .skeleton_model import SkeletonModel
@@ -43,28 +44,32 @@ from .structure import SkeletalStructure
 
 @dataclass
 class JointParams:
-    """Parameters of Alg. 2 (defaults: the paper's Table 1 and Sec. 7).
+    """Parameters of Alg. 2 (defaults: the paper's Table 1 and Sec. 7). A running joint node
+    applies new values from the next structure (they are all live)."""
 
-    omega: outlier weight omega' (Eq. 11); eta: joint data weight; zeta: weight of
-    E_Register; gamma: weight of E_small; alpha_growth: alpha = zeta * M * growth^iteration;
-    initial_tau: tau^t at the start (m^2); max_iterations, tolerance: EM stopping (10, not
-    the 20 of Alg. 1: the joints settle within 10);
-    max_influences: bones per point (Eq. 12b); e_step_neighbours, truncation_sigmas: the
-    truncated E-step (see core.gmm); min_tau: floor on tau (m^2).
-    """
+    omega: float = parameter(0.01, "outlier weight omega' of the GMM (Eq. 11), a probability", 0.0, 0.999,
+                             live=True)
+    eta: float = parameter(1.0, 'weight of the joint data term in E_Joint (Table 1), dimensionless', 0.0, INF,
+                           live=True)
+    zeta: float = parameter(1e4, 'weight of E_Register, the pull to the registered points (Table 1), 1/m^2',
+                            0.0, INF, live=True)
+    gamma: float = parameter(0.1, 'weight of E_small (Table 1), dimensionless', 0.0, INF, live=True)
+    alpha_growth: float = parameter(1.45, 'the E_Joint weight alpha = zeta * M * alpha_growth^iteration, '
+                                    'dimensionless', 1.0, 100.0, live=True)
+    initial_tau: float = parameter(6e-4, 'initial per-frame GMM variance tau, m^2', 1e-12, INF, live=True)
+    max_iterations: int = parameter(10, "Alg. 2 EM iterations at most; 0 = Step 2's joints unchanged", 0, 1000,
+                                    live=True)
+    tolerance: float = parameter(1e-3, 'stop Alg. 2 when the relative energy change is below this, '
+                                 'dimensionless', 0.0, 1.0, live=True)
+    max_influences: int = parameter(4, 'bones per point in the LBS weights (Eq. 12b)', 1, 4, live=True)
+    e_step_neighbours: int = parameter(8, 'truncated E-step: nearest centroids per observed point', 1, 64,
+                                       live=True)
+    truncation_sigmas: float = parameter(4.0, 'truncated E-step: neighbour radius in standard deviations',
+                                         1.0, 100.0, live=True)
+    min_tau: float = parameter(1e-6, 'lower bound of tau, m^2', 0.0, INF, live=True)
 
-    omega: float = 0.01
-    eta: float = 1.0
-    zeta: float = 1e4
-    gamma: float = 0.1
-    alpha_growth: float = 1.45
-    initial_tau: float = 6e-4
-    max_iterations: int = 10
-    tolerance: float = 1e-3
-    max_influences: int = 4
-    e_step_neighbours: int = 8
-    truncation_sigmas: float = 4.0
-    min_tau: float = 1e-6
+    def __post_init__(self):
+        validate(self)
 
 
 @dataclass

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .parameters import parameter, validate
 from .point_sets import finite_rows, ransac_plane, statistical_inliers, voxel_centroids
 
 
@@ -19,33 +20,33 @@ class PreprocessError(ValueError):
 
 @dataclass
 class PreprocessParams:
-    """Preprocessing parameters (metres).
+    """Preprocessing parameters (the steps in the module docstring)."""
 
-    crop_min, crop_max: optional axis-aligned crop box in the cloud frame (None = no crop).
-    target_points: voxel downsampling aims at about this many points (0 = no downsampling).
-    initial_voxel_size: first guess of the voxel size; later frames reuse the last size.
-    max_input_points: clouds larger than this are randomly thinned first, so a runaway
-        driver setting (a million points) costs bounded time.
-    remove_plane: remove the largest plane if it holds at least `plane_min_fraction` of
-        the points (floor, wall, table); plane_distance is the RANSAC inlier distance.
-    keep_largest_cluster: keep only the largest DBSCAN cluster (eps `cluster_eps`).
-    outlier_neighbours, outlier_std_ratio: statistical outlier removal (0 neighbours = off).
-    """
+    crop_min: tuple | None = parameter(None, '[x, y, z] m, lower corner of an axis-aligned crop box in the '
+                                       'cloud frame; [] = no crop', size=3)
+    crop_max: tuple | None = parameter(None, '[x, y, z] m, upper corner of the crop box; [] = no crop', size=3)
+    target_points: int = parameter(5000, 'voxel downsampling aims at about this many points per frame; '
+                                   '0 = no downsampling', 0, 10_000_000)
+    initial_voxel_size: float = parameter(0.01, 'first voxel size tried, m (later frames reuse the last, '
+                                          'adapted one)', 1e-4, 1.0)
+    max_input_points: int = parameter(400_000, 'larger clouds are randomly thinned to this many points first '
+                                      '(bounded time for a runaway driver setting)', 1000, 100_000_000)
+    remove_plane: bool = parameter(False, 'remove the largest plane (floor, wall, table) if it holds '
+                                   'plane_min_fraction of the points')
+    plane_distance: float = parameter(0.02, 'RANSAC plane inlier distance, m', 1e-4, 1.0)
+    plane_min_fraction: float = parameter(0.2, 'only a plane holding this share of the points is removed, '
+                                          'a fraction', 0.0, 1.0)
+    keep_largest_cluster: bool = parameter(False, 'keep only the largest Euclidean (DBSCAN) cluster, the '
+                                           'subject')
+    cluster_eps: float = parameter(0.05, 'cluster neighbour distance, m', 1e-4, 10.0)
+    cluster_min_points: int = parameter(10, 'smallest cluster, points', 1, 1_000_000)
+    outlier_neighbours: int = parameter(16, 'statistical outlier removal neighbours, points; 0 = off', 0, 200)
+    outlier_std_ratio: float = parameter(2.0, 'statistical outlier removal threshold, standard deviations',
+                                         0.1, 100.0)
+    seed: int = parameter(0, 'seed of the random thinning', 0, 2**31 - 1)
 
-    crop_min: tuple | None = None
-    crop_max: tuple | None = None
-    target_points: int = 5000
-    initial_voxel_size: float = 0.01
-    max_input_points: int = 400_000
-    remove_plane: bool = False
-    plane_distance: float = 0.02
-    plane_min_fraction: float = 0.2
-    keep_largest_cluster: bool = False
-    cluster_eps: float = 0.05
-    cluster_min_points: int = 10
-    outlier_neighbours: int = 16
-    outlier_std_ratio: float = 2.0
-    seed: int = 0
+    def __post_init__(self):
+        validate(self)
 
 
 class Preprocessor:

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .parameters import INF, parameter, validate
 from .point_sets import median_spacing
 
 
@@ -23,27 +24,23 @@ class RestPoseError(ValueError):
 
 @dataclass
 class RestPoseParams:
-    """Rest-pose parameters.
+    """Rest-pose parameters (the reconstruction in the module docstring)."""
 
-    n_points: M, the number of rest points (and of registered points per frame).
-    poisson_depth: octree depth of the Poisson reconstruction.
-    density_quantile: mesh vertices below this quantile of Poisson density are removed.
-    max_distance_factor: mesh vertices farther from every input point than this many
-        median input spacings are removed.
-    normal_neighbours: neighbours for normal estimation.
-    camera_location: the sensor origin in the cloud frame (normals point towards it).
-    poisson_threads: threads of the Poisson solver; 1 (the default) makes the rest pose,
-        and so every later result, repeatable run to run (Open3D's multi-threaded solver
-        is not deterministic) at about 2 s more once per sequence; -1 uses all cores.
-    """
+    n_points: int = parameter(2000, 'M, the rest points = the registered points per frame', 100, 1_000_000)
+    poisson_depth: int = parameter(8, 'octree depth of the Poisson reconstruction of the rest pose', 4, 12)
+    density_quantile: float = parameter(0.05, 'Poisson vertices below this quantile of the Poisson density are '
+                                        'trimmed, a fraction', 0.0, 1.0)
+    max_distance_factor: float = parameter(2.0, 'surface farther than this many median input point spacings '
+                                           'from every input point is trimmed, dimensionless', 0.0, INF)
+    normal_neighbours: int = parameter(20, 'neighbours for normal estimation, points', 3, 200)
+    camera_location: tuple = parameter((0.0, 0.0, 0.0), '[x, y, z] m, the sensor origin in the cloud frame '
+                                       '(normals are oriented towards it)', size=3)
+    poisson_threads: int = parameter(1, 'threads of the Poisson solver; 1 = repeatable rest pose, and so every '
+                                     "later result (Open3D's multi-threaded solver is not deterministic), "
+                                     '-1 = all cores', -1, 256)
 
-    n_points: int = 2000
-    poisson_depth: int = 8
-    density_quantile: float = 0.05
-    max_distance_factor: float = 2.0
-    normal_neighbours: int = 20
-    camera_location: tuple = (0.0, 0.0, 0.0)
-    poisson_threads: int = 1
+    def __post_init__(self):
+        validate(self)
 
 
 @dataclass

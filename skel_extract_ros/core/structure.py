@@ -57,6 +57,7 @@ from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
 from scipy.spatial import cKDTree
 
 from .joint_centres import boundary_centroids, joint_trajectories, medial_anchors, solve_joints
+from .parameters import INF, parameter, validate
 from .point_sets import median_spacing
 from .rigid import fit_rigid_segments, segment_matrix
 
@@ -67,59 +68,42 @@ class StructureError(ValueError):
 
 @dataclass
 class StructureParams:
-    """Parameters of the skeletal structure extraction.
+    """Parameters of the skeletal structure extraction (the refinement thresholds are
+    fractions of the points or of the subject size: the module docstring)."""
 
-    n_clusters: initial K of K-means (more than the expected bones; extra ones are merged).
-    cluster_on: 'trajectories' (each point's registered path, F x 3 values) or 'rest'
-        (rest positions only).
-    n_rounds: rounds of fit / relabel / continuity (the paper uses 10).
-    neighbour_radius: ball radius (m) for local continuity and bone adjacency; None =
-        `neighbour_radius_factor` x the median rest point spacing.
-    min_bone_fraction, leaf_min_fraction, joint_merge_fraction: refinement thresholds as
-        fractions of the points or of the subject size (see the module docstring).
-    motion_noise_factor: evidence a joint needs: its relative rotation over the window
-        must exceed this many times what the registration noise alone produces (the module
-        docstring, "Split evidence"); dimensionless.
-    eta: weight of the joint data term (Table 1).
-    max_key_frames: a growing skeleton (core.growth) is learned from at most this many
-        frames, the most different poses seen so far.
-    joint_match_fraction: a growing skeleton's joints of two updates within this share of
-        the subject size are the same joint (keep their id and name).
-    anchor_depth: 'medial' (c~ moved back to the bone's cross-section centre, see
-        `medial_anchors`) or 'surface' (the paper's boundary centroid as is).
-    camera_location: (3,) sensor origin in the cloud frame (m), for the camera rays.
-    seed: K-means seed.
-    """
-
-    n_clusters: int = 30
-    cluster_on: str = 'trajectories'
-    n_rounds: int = 10
-    neighbour_radius: float | None = None
-    neighbour_radius_factor: float = 2.5
-    min_bone_fraction: float = 0.01
-    motion_noise_factor: float = 5.0
-    leaf_min_fraction: float = 0.02
-    joint_merge_fraction: float = 0.03
-    eta: float = 1.0
-    max_key_frames: int = 90
-    joint_match_fraction: float = 0.05
-    anchor_depth: str = 'medial'
-    camera_location: tuple = (0.0, 0.0, 0.0)
-    seed: int = 0
+    n_clusters: int = parameter(30, 'initial K-means clusters (deliberately more than the bones)', 2, 10_000)
+    cluster_on: str = parameter('trajectories', "K-means features: trajectories (each point's whole registered "
+                                'path) or rest (rest positions)', choices=('trajectories', 'rest'))
+    n_rounds: int = parameter(10, 'rounds of rigid fit / relabel / local continuity (paper: 10)', 0, 1000)
+    neighbour_radius: float | None = parameter(None, 'ball radius for local continuity and bone adjacency, m; '
+                                               '0 = automatic (neighbour_radius_factor)', 0.0, INF)
+    neighbour_radius_factor: float = parameter(2.5, 'automatic radius = this x the median rest point spacing, '
+                                               'dimensionless', 0.1, 100.0)
+    min_bone_fraction: float = parameter(0.01, 'bones holding less than this fraction of the points are dropped',
+                                         0.0, 1.0)
+    motion_noise_factor: float = parameter(5.0, 'evidence a joint needs: its relative rotation over the window '
+                                           'over the rotation the registration noise alone makes (swap '
+                                           'displacement / rigid-fit noise); below it the bone is merged into its '
+                                           'parent, dimensionless', 0.0, INF)
+    leaf_min_fraction: float = parameter(0.02, 'paper rule 1: leaf bones at branching joints below this share of '
+                                         'the points are dropped, a fraction', 0.0, 1.0)
+    joint_merge_fraction: float = parameter(0.03, 'paper rule 3: joints closer than this x the subject size are '
+                                            'merged, a fraction', 0.0, 1.0)
+    eta: float = parameter(1.0, 'weight of the joint data term in the Step 2 joint solve (Table 1), '
+                           'dimensionless', 0.0, INF)
+    max_key_frames: int = parameter(90, 'the growing skeleton is learned from at most this many frames, the most '
+                                    'different poses seen so far', 2, 100_000)
+    joint_match_fraction: float = parameter(0.05, 'joints of two updates closer than this x the subject size are '
+                                            'the same joint (keep id and name), a fraction', above=0.0, below=1.0)
+    anchor_depth: str = parameter('medial', "joint anchors c~: medial (moved back along the camera ray to the "
+                                  "bone's cross-section centre) or surface (the paper's boundary centroid)",
+                                  choices=('medial', 'surface'))
+    camera_location: tuple = parameter((0.0, 0.0, 0.0), '[x, y, z] m, the sensor origin in the cloud frame '
+                                       '(camera rays for medial anchors)', size=3)
+    seed: int = parameter(0, 'K-means seed', 0, 2**31 - 1)
 
     def __post_init__(self):
-        if self.cluster_on not in ('trajectories', 'rest'):
-            raise ValueError(f"cluster_on must be 'trajectories' or 'rest', got {self.cluster_on!r}")
-        if self.anchor_depth not in ('medial', 'surface'):
-            raise ValueError(f"anchor_depth must be 'medial' or 'surface', got {self.anchor_depth!r}")
-        if len(self.camera_location) != 3:
-            raise ValueError(f'camera_location must be [x, y, z], got {list(self.camera_location)}')
-        if self.max_key_frames < 2:
-            raise ValueError(f'max_key_frames must be >= 2, got {self.max_key_frames}')
-        if not 0.0 < self.joint_match_fraction < 1.0:
-            raise ValueError(f'joint_match_fraction must be in (0, 1), got {self.joint_match_fraction}')
-        if self.n_clusters < 2 or self.n_rounds < 0:
-            raise ValueError('n_clusters must be >= 2 and n_rounds >= 0')
+        validate(self)
 
 
 @dataclass

@@ -27,9 +27,8 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from ..core.growth import SkeletonGrowth
-from ..core.structure import StructureError, StructureParams
-from ..params import schedule_from_dict, structure_params_from_dict
-from .common import (LATCHED_QOS, STREAM_QOS, StampPairer, ThrottledLog, WorkingNode, declare_node_parameters,
+from ..core.structure import StructureError
+from .common import (LATCHED_QOS, STREAM_QOS, StampPairer, ThrottledLog, WorkingNode, declare_params,
                      decode_or_warn, decode_registered_or_warn, on_live_parameters, release_freed_memory, run_node)
 from ..codecs.messages import stamp_ns, structure_document
 from .diagnostics import OK, WARN, NodeDiagnostics
@@ -41,8 +40,8 @@ SECTION = 'accumulator_node'
 class AccumulatorNode(WorkingNode):
     def __init__(self, **kwargs):
         super().__init__('accumulator_node', **kwargs)
-        self.params, values = declare_node_parameters(self, SECTION, StructureParams, structure_params_from_dict)
-        self.schedule = schedule_from_dict(values)
+        params = declare_params(self, SECTION)
+        self.params, self.schedule = params['structure'], params['schedule']
         self.log = ThrottledLog(self.get_logger())
         on_live_parameters(self, SECTION, self._apply_parameters)
         self.structure_pub = self.create_publisher(String, 'skeleton/structure', LATCHED_QOS)
@@ -69,10 +68,10 @@ class AccumulatorNode(WorkingNode):
         mode = f'sliding, every {self.schedule.stride} frames' if self.schedule.sliding else 'once'
         self.get_logger().info(f'waiting for registered_points: windows of {self.schedule.window_size} frames ({mode})')
 
-    def _apply_parameters(self, values: dict, _changed: set) -> None:
-        """`ros2 param set` of the window (parameter_docs.LIVE): from the next registered frame."""
+    def _apply_parameters(self, params: dict, _changed: set) -> None:
+        """`ros2 param set` of the window (its live parameters): from the next registered frame."""
         with self._lock:
-            self.schedule = schedule_from_dict(values)
+            self.schedule = params['schedule']
 
     # -- inputs ----------------------------------------------------------------------------
     def _on_rest(self, msg: PointCloud2) -> None:

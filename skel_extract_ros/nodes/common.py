@@ -3,10 +3,8 @@ dataclasses, throttled warnings that count what they suppressed, and the main() 
 from __future__ import annotations
 
 import collections
-import dataclasses
 import threading
 import time
-import typing
 
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType,
                                 SetParametersResult)
@@ -15,7 +13,8 @@ from rclpy.node import Node
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
                        qos_profile_sensor_data)
 
-from ..parameter_docs import PARAMETER_DOCS, READ_ONLY_NOTE, describe, is_live, unset_value
+from ..config import Declaration, declarations, node_params
+from ..config.docs import ros_description
 
 # Depth drivers publish best effort or reliable; a best-effort reader matches both.
 SENSOR_QOS = qos_profile_sensor_data
@@ -45,85 +44,63 @@ class ParameterError(ValueError):
     """A parameter value the node cannot run with (the message names it)."""
 
 
-def _ros_default(field: dataclasses.Field, hint):
-    """(value, descriptor type, dynamic) of a dataclass field as a ROS parameter; None
-    defaults become 0.0 ('automatic') or [] ('unset')."""
-    default = field.default
-    if default is None:
-        value = unset_value(hint)
-        if isinstance(value, float):
-            return value, ParameterType.PARAMETER_DOUBLE, False
-        return value, ParameterType.PARAMETER_DOUBLE_ARRAY, True
-    if isinstance(default, bool):
-        return default, ParameterType.PARAMETER_BOOL, False
-    if isinstance(default, int):
-        return default, ParameterType.PARAMETER_INTEGER, False
-    if isinstance(default, float):
-        return default, ParameterType.PARAMETER_DOUBLE, False
-    if isinstance(default, str):
-        return default, ParameterType.PARAMETER_STRING, False
-    if isinstance(default, tuple):
-        return [float(v) for v in default], ParameterType.PARAMETER_DOUBLE_ARRAY, False
-    raise TypeError(f'no ROS parameter type for {field.name} = {default!r}')
+_ROS_TYPES = ((bool, ParameterType.PARAMETER_BOOL), (int, ParameterType.PARAMETER_INTEGER),
+              (float, ParameterType.PARAMETER_DOUBLE), (str, ParameterType.PARAMETER_STRING),
+              (list, ParameterType.PARAMETER_DOUBLE_ARRAY))
 
 
-def declare_dataclass(node, section: str, cls, prefix: str = '') -> dict:
-    """Declare every field of `cls` as `<prefix><name>` (descriptions and ranges from
-    parameter_docs[section]) and return {name: value} with the values the node was started with."""
-    hints = typing.get_type_hints(cls)
-    values = {}
-    for field in dataclasses.fields(cls):
-        name = prefix + field.name
-        value, kind, dynamic = _ros_default(field, hints[field.name])
-        values[field.name] = declare(node, section, name, value, kind, dynamic)
-    return values
+def _descriptor(declaration: Declaration) -> ParameterDescriptor:
+    """The ParameterDescriptor of a parameter: its description, type and range from the
+    dataclass field, read-only unless live; an empty list is typed by its first value."""
+    spec, default = declaration.spec, declaration.default
+    descriptor = ParameterDescriptor(name=declaration.name, description=ros_description(declaration),
+                                     dynamic_typing=declaration.untyped, read_only=not spec.live)
+    descriptor.type = next(kind for python_type, kind in _ROS_TYPES if isinstance(default, python_type))
+    low, high = spec.bounds()
+    if low is not None and isinstance(default, float):
+        descriptor.floating_point_range = [FloatingPointRange(from_value=float(low), to_value=float(high))]
+    elif low is not None and isinstance(default, int) and not isinstance(default, bool):
+        descriptor.integer_range = [IntegerRange(from_value=int(low), to_value=int(high), step=1)]
+    return descriptor
 
 
-def declare_node_parameters(node, section: str, cls, build) -> tuple:
-    """Declare the method parameters (fields of `cls`) and the node's own (params.NODE_ONLY),
-    then `build(values)` -> the method's dataclass. Returns (dataclass, values)."""
-    from ..params import NODE_ONLY
-    values = declare_dataclass(node, section, cls)
-    for name, default in NODE_ONLY[section].items():
-        values[name] = declare(node, section, name, default)
+def _declare(node, declaration: Declaration):
+    """Declare one parameter; returns its value. A value of the wrong type or out of range
+    raises ParameterError with the name and what is expected."""
     try:
-        return build(values), values
+        return node.declare_parameter(declaration.name, declaration.default, _descriptor(declaration)).value
+    except (InvalidParameterTypeException, InvalidParameterValueException) as error:
+        raise ParameterError(f'parameter {declaration.name}: {error} ({declaration.spec.description})') from None
+
+
+def declare_params(node, section: str) -> dict:
+    """Declare every parameter of the node `section` (config.nodes.NODES: the fields of its
+    dataclasses, with their descriptions and ranges) and return its dataclasses built from
+    the values the node was started with, {section key: dataclass} (config.node_params).
+    A value out of range or choices raises ParameterError naming it."""
+    values = {d.name: _declare(node, d) for d in declarations(section)}
+    try:
+        return node_params(section, values)
     except ValueError as error:
         raise ParameterError(str(error)) from None
 
 
-def declare(node, section: str, name: str, value, kind=None, dynamic: bool = False):
-    """Declare one documented parameter; returns its value. A value of the wrong type or
-    out of range raises ParameterError with the name and what is expected."""
-    description, low, high = describe(section, name)
-    live = is_live(section, name)
-    descriptor = ParameterDescriptor(name=name, description=description + ('' if live else READ_ONLY_NOTE),
-                                     dynamic_typing=dynamic, read_only=not live)
-    if kind is not None:
-        descriptor.type = kind
-    if low is not None and isinstance(value, float):
-        descriptor.floating_point_range = [FloatingPointRange(from_value=float(low), to_value=float(high))]
-    elif low is not None and isinstance(value, int) and not isinstance(value, bool):
-        descriptor.integer_range = [IntegerRange(from_value=int(low), to_value=int(high), step=1)]
-    try:
-        return node.declare_parameter(name, value, descriptor).value
-    except (InvalidParameterTypeException, InvalidParameterValueException) as error:
-        raise ParameterError(f'parameter {name}: {error} ({description})') from None
-
-
 def on_live_parameters(node, section: str, apply) -> None:
-    """Apply `ros2 param set` on the node's live parameters (parameter_docs.LIVE; the others
-    are read-only, rclpy refuses them before this). apply(values, changed) gets every
-    documented parameter's value with the new ones in ({name: value}) and the names that
-    change; a ValueError it raises refuses the whole set with its message as the reason."""
+    """Apply `ros2 param set` on the node's live parameters (field metadata `live`; the
+    others are read-only, rclpy refuses them before this). apply(params, changed) gets the
+    node's dataclasses built with the new values ({section key: dataclass}, as
+    declare_params) and the names that change; a ValueError, raised by the dataclasses'
+    validation or by apply, refuses the whole set with its message as the reason."""
+    names = [d.name for d in declarations(section)]
+
     def callback(parameters) -> SetParametersResult:
-        changed = {p.name: p.value for p in parameters if p.name in PARAMETER_DOCS[section]}
+        changed = {p.name: p.value for p in parameters if p.name in names}
         if not changed:
             return SetParametersResult(successful=True)
-        values = {name: node.get_parameter(name).value for name in PARAMETER_DOCS[section] if node.has_parameter(name)}
+        values = {name: node.get_parameter(name).value for name in names if node.has_parameter(name)}
         values.update(changed)
         try:
-            apply(values, set(changed))
+            apply(node_params(section, values), set(changed))
         except ValueError as error:
             return SetParametersResult(successful=False, reason=str(error))
         node.get_logger().info('parameters set: ' + ', '.join(f'{k} = {v!r}' for k, v in sorted(changed.items())))

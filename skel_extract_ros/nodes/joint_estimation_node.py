@@ -50,14 +50,13 @@ import numpy as np
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import String
 
-from ..core.joints import JointEstimation, JointParams
+from ..core.joints import JointEstimation
 from ..core.live import ArticulatedTracker, CameraTracker, LiveJointTracker
 from ..core.point_sets import finite_rows
 from ..core.skeleton_model import SkeletonModel
 from ..core.structure import SkeletalStructure
-from ..params import joint_params_from_dict
-from .common import (LATCHED_QOS, STREAM_QOS, ParameterError, StampPairer, ThrottledLog, WorkingNode,
-                     declare_node_parameters, decode_or_warn, decode_registered_or_warn, on_live_parameters,
+from .common import (LATCHED_QOS, STREAM_QOS, StampPairer, ThrottledLog, WorkingNode,
+                     declare_params, decode_or_warn, decode_registered_or_warn, on_live_parameters,
                      release_freed_memory, run_node)
 from ..codecs.messages import cloud_message, parse_structure, stamp_ns
 from .diagnostics import OK, WARN, NodeDiagnostics
@@ -70,13 +69,12 @@ SECTION = 'joint_estimation_node'
 class JointEstimationNode(WorkingNode):
     def __init__(self, **kwargs):
         super().__init__('joint_estimation_node', **kwargs)
-        self.params, values = declare_node_parameters(self, SECTION, JointParams, joint_params_from_dict)
-        self.buffer_size, self.live_sweeps = values['buffer_size'], values['live_sweeps']
-        self.joint_diameter = values['joint_diameter']
-        self.provisional_skeleton = values['provisional_skeleton']
-        self.live_frames, self.live_iterations = values['live_frames'], values['live_iterations']
-        if self.live_frames not in ('camera', 'registered'):
-            raise ParameterError(f"parameter live_frames must be 'camera' or 'registered', got {self.live_frames!r}")
+        params = declare_params(self, SECTION)
+        self.params, own = params['joints'], params['node']
+        self.buffer_size, self.live_sweeps = own.buffer_size, own.live_sweeps
+        self.joint_diameter = own.joint_diameter
+        self.provisional_skeleton = own.provisional_skeleton
+        self.live_frames, self.live_iterations = own.live_frames, own.live_iterations
         self.log = ThrottledLog(self.get_logger())
         on_live_parameters(self, SECTION, self._apply_parameters)
         # description, joints, trajectory, confidence, markers (nodes/skeleton_output.py)
@@ -99,7 +97,7 @@ class JointEstimationNode(WorkingNode):
         self._early_structure = None
         # Alg. 2 runs for seconds beside the live fit of every camera frame: below it
         self.estimator = Worker(self._estimate, 'joints', capacity=1, on_error=self._estimation_failed,
-                                niceness=values['estimation_niceness'])
+                                niceness=own.estimation_niceness)
         self.live_ms = collections.deque(maxlen=1000)      # per live frame fit
         self.registered_rate, self.joints_rate = RateMeter(), RateMeter()
         self.live_fits = {'fitted': 0, 'lost': 0, 'registered': 0, 'too_few_points': 0}
@@ -111,16 +109,16 @@ class JointEstimationNode(WorkingNode):
         self.diagnostics = NodeDiagnostics(self, self._diagnostics)
         self.get_logger().info('waiting for skeleton/structure')
 
-    def _apply_parameters(self, values: dict, _changed: set) -> None:
-        """`ros2 param set` (parameter_docs.LIVE): the method's parameters and
+    def _apply_parameters(self, params: dict, _changed: set) -> None:
+        """`ros2 param set` (the live parameters): the method's parameters and
         provisional_skeleton apply from the next structure (Alg. 2 and the trackers of the
-        model it gives), the rest from the next frame. ParamsError (a ValueError) refuses."""
-        params = joint_params_from_dict(values)
+        model it gives), the rest from the next frame."""
+        own = params['node']
         with self._lock:
-            self.params = params
-            self.buffer_size, self.provisional_skeleton = values['buffer_size'], values['provisional_skeleton']
-            self.live_sweeps, self.live_iterations = values['live_sweeps'], values['live_iterations']
-            self.output.joint_diameter = float(values['joint_diameter'])
+            self.params = params['joints']
+            self.buffer_size, self.provisional_skeleton = own.buffer_size, own.provisional_skeleton
+            self.live_sweeps, self.live_iterations = own.live_sweeps, own.live_iterations
+            self.output.joint_diameter = float(own.joint_diameter)
             if self.tracker is not None:       # the model tracked now, from its next frame
                 self.tracker.sweeps = self.live_sweeps
                 self.camera.tracker.iterations = self.live_iterations

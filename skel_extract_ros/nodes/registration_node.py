@@ -36,18 +36,12 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
-from ..core.preprocess import PreprocessParams
-from ..core.registration import RegistrationParams
-from ..core.rest_pose import RestPoseParams
-from ..core.segmentation import SegmentationParams
 from ..codecs.depth_image import DepthDecodeError, depth_to_cloud
-from ..params import NODE_ONLY, registration_params_from_dict
-from ..codecs.pointcloud import CloudDecodeError, decode_xyz
-from .common import (LATCHED_QOS, SENSOR_QOS, STREAM_QOS, ParameterError, ThrottledLog, WorkingNode, declare,
-                     declare_dataclass, decode_or_warn, run_node)
 from ..codecs.messages import cloud_message, stamp_ns
+from ..codecs.pointcloud import CloudDecodeError, decode_xyz
+from .common import LATCHED_QOS, SENSOR_QOS, STREAM_QOS, ThrottledLog, WorkingNode, declare_params, decode_or_warn, run_node
 from .diagnostics import OK, WARN, NodeDiagnostics
-from .registration_stages import RegistrationStages, StageSettings
+from .registration_stages import RegistrationStages
 
 SECTION = 'registration_node'
 
@@ -73,26 +67,14 @@ class _Outputs:
 class RegistrationNode(WorkingNode):
     def __init__(self, **kwargs):
         super().__init__('registration_node', **kwargs)
-        values = declare_dataclass(self, SECTION, RegistrationParams)
-        values['rest_pose'] = declare_dataclass(self, SECTION, RestPoseParams, 'rest_pose.')
-        values['preprocess'] = declare_dataclass(self, SECTION, PreprocessParams, 'preprocess.')
-        values['segmentation'] = declare_dataclass(self, SECTION, SegmentationParams, 'segmentation.')
-        own = {name: declare(self, SECTION, name, default) for name, default in NODE_ONLY[SECTION].items()}
-        if own['input_reliability'] not in ('best_effort', 'reliable'):
-            raise ParameterError(f"parameter input_reliability must be 'best_effort' or 'reliable', "
-                                 f"got {own['input_reliability']!r}")
-        if own['input'] not in ('cloud', 'depth_image'):
-            raise ParameterError(f"parameter input must be 'cloud' or 'depth_image', got {own['input']!r}")
-        try:
-            method = registration_params_from_dict(values)
-        except ValueError as error:
-            raise ParameterError(str(error)) from None
-        self.params, self.rest_params = method[:2]
-        self.lossless, self.input = own['lossless'], own['input']
+        params = declare_params(self, SECTION)
+        self.params, self.rest_params = params['registration'], params['rest_pose']
+        method = (params['registration'], params['rest_pose'], params['preprocess'], params['segmentation'])
+        own = params['node']
+        self.lossless, self.input = own.lossless, own.input
         self.log = ThrottledLog(self.get_logger())
         self.outputs = _Outputs(self)
-        settings = StageSettings(**{name: own[name] for name in StageSettings.__dataclass_fields__})
-        self.stages = RegistrationStages(method, settings, self._decode, self.outputs, self.log,
+        self.stages = RegistrationStages(method, own, self._decode, self.outputs, self.log,
                                          self.get_logger(), self.context.ok)
         self.create_service(Trigger, '~/reset', self._on_reset)
         self.create_service(Trigger, '~/reset_background', self._on_reset_background)
@@ -104,7 +86,7 @@ class RegistrationNode(WorkingNode):
         self.diagnostics = NodeDiagnostics(self, self._diagnostics)
         # best effort matches every driver; reliable (for bag replay) never loses a
         # fragmented megabyte cloud to a full socket buffer, but needs a reliable publisher
-        qos = SENSOR_QOS if own['input_reliability'] == 'best_effort' else STREAM_QOS
+        qos = SENSOR_QOS if own.input_reliability == 'best_effort' else STREAM_QOS
         self.camera_info = None
         if self.input == 'cloud':
             self.create_subscription(PointCloud2, 'points', self._on_cloud, qos)

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..config.nodes import RegistrationNodeParams
 from ..core.registration import STATUS_OK
 from ..core.segmentation import STATUS_NOBODY
 from ..core.stream import (ORDER_REPEATED, ORDER_WENT_BACK, PARTIAL_VIEW_PATIENCE_FRAMES, WAIT_FEW_POINTS,
@@ -29,18 +30,6 @@ from ..codecs.messages import stamp_ns
 from .registration_process import (REST_POSE_IDLE_RELEASE_S, ChildProcessDied, RegistrationProcess,
                                    RestPoseProcess)
 from .worker import Worker
-
-
-@dataclass
-class StageSettings:
-    """The node parameters the stages follow (README, registration_node)."""
-
-    queue_size: int
-    learning_queue_size: int
-    lossless: bool
-    registration_niceness: int
-    registration_sched_idle: bool
-    live_start: bool
 
 
 @dataclass
@@ -56,12 +45,14 @@ class _SubjectFrame:
 
 
 class RegistrationStages:
-    """decode(msg, info) -> (points (H*W, 3), height, width) or None (it says why);
+    """method: the (RegistrationParams, RestPoseParams, PreprocessParams,
+    SegmentationParams) of the node; settings: its own parameters (queues, priority,
+    live_start); decode(msg, info) -> (points (H*W, 3), height, width) or None (it says why);
     publish.filtered / .registered / .rest(points, header) send the outputs; log is a
     nodes.common.ThrottledLog, logger the node's logger, context_ok() False once ROS shuts
     down (a frame failing then is not worth a line)."""
 
-    def __init__(self, method: tuple, settings: StageSettings, decode, publish, log, logger, context_ok):
+    def __init__(self, method: tuple, settings: RegistrationNodeParams, decode, publish, log, logger, context_ok):
         (self.params, self.rest_params, self.preprocess_params, self.segmentation_params) = method
         self.settings, self.decode, self.publish = settings, decode, publish
         self.log, self.logger, self.context_ok = log, logger, context_ok

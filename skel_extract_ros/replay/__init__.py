@@ -109,7 +109,7 @@ class _Replay:
 
         from ..codecs.bag import _raw_messages, camera_info_topic, cloud_topics, is_depth_topic, select_cloud_topic
         from ..codecs.messages import stamp_ns
-        from ..params import default_params_file, load_params_file
+        from ..config import default_params_file, load_params_file
         if rate < 0:
             raise ReplayError(f'--rate must be >= 0 (0 = as fast as possible), got {rate}')
         if realtime and rate == 0:

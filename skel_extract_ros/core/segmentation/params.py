@@ -5,6 +5,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..parameters import parameter, validate
+
 STATUS_SUBJECT = 'subject'
 STATUS_NOBODY = 'nobody'
 STATUS_OFF = 'off'
@@ -12,53 +14,36 @@ STATUS_OFF = 'off'
 
 @dataclass
 class SegmentationParams:
-    """Subject segmentation parameters.
+    """Subject segmentation parameters. The organized analysis (motion, planes, regions)
+    runs on a working grid of at most max_pixels pixels; the subject's pixels at full
+    resolution are then those of its grid cells (and the cells beside it) within a depth
+    jump of it and off the planes, so the cost per frame follows the grid, not the camera."""
 
-    enabled: find the subject (default); off = every valid point is the subject.
-    noise_sigmas: a depth change or a distance to a plane counts when it exceeds this many
-        measured noise deviations.
-    min_noise_c: floor of the noise coefficient c in sigma(r) = c r^2 (1/m); 0.001 is 9 mm
-        at 3 m, below what consumer depth cameras reach.
-    motion_lag: frames between the depths compared for motion (slow motion adds up).
-    motion_memory: frames over which motion evidence fades (60 = 2 s at 30 Hz).
-    max_planes: planes (floor, walls, table tops) removed at most.
-    min_plane_extent: m; a plane smaller than this in either direction is kept (it may be
-        the subject's torso or back).
-    plane_refresh: frames between plane fits (planes of a still camera do not change).
-    attach_distance: m; a moving region this close to the subject in 3-D is part of it.
-    min_subject_points: a subject region smaller than this (pixels of the working grid,
-        points of an unorganized cloud) is nobody.
-    max_pixels: the organized analysis (motion, planes, regions) runs on a working grid of
-        at most this many pixels, every k-th row and column (a 640x480 camera works at
-        320x240 with the default); the subject's pixels at full resolution are then those
-        of its grid cells (and the cells beside it) within a depth jump of it and off the
-        planes. The cost per frame follows the grid, not the camera.
-    seed: RANSAC seed.
-    """
-
-    enabled: bool = True
-    noise_sigmas: float = 3.0
-    min_noise_c: float = 0.001
-    motion_lag: int = 3
-    motion_memory: int = 60
-    max_planes: int = 4
-    min_plane_extent: float = 0.8
-    plane_refresh: int = 30
-    attach_distance: float = 0.15
-    min_subject_points: int = 200
-    max_pixels: int = 320 * 240
-    seed: int = 0
+    enabled: bool = parameter(True, 'find the subject (the connected region that moves) and drop the room; '
+                              'false = every valid point is the subject')
+    noise_sigmas: float = parameter(3.0, 'a depth change or a distance to a plane counts beyond this many '
+                                    'standard deviations of the depth noise estimated from the images', 0.5, 100.0)
+    min_noise_c: float = parameter(0.001, 'floor of the depth noise coefficient c in sigma = c r^2, 1/m '
+                                   '(0.001: 9 mm at 3 m)', 1e-6, 1.0)
+    motion_lag: int = parameter(3, 'frames between the depth images compared for motion (slow motion adds up)',
+                                1, 1000)
+    motion_memory: int = parameter(60, 'frames over which motion evidence fades', 1, 100_000)
+    max_planes: int = parameter(4, 'planes (floor, walls, table tops) removed at most', 0, 20)
+    min_plane_extent: float = parameter(0.8, 'a plane smaller than this in either direction is kept (it may be '
+                                        "the subject's torso or back), m", 0.01, 100.0)
+    plane_refresh: int = parameter(30, 'frames between plane fits', 1, 100_000)
+    attach_distance: float = parameter(0.15, 'a moving region this close to the subject in 3-D is part of it, m',
+                                       0.0, 10.0)
+    min_subject_points: int = parameter(200, 'a smaller subject is nobody, pixels of the working grid (points '
+                                        'of an unorganized cloud)', 1, 10_000_000)
+    max_pixels: int = parameter(320 * 240, 'pixels of the working grid at most: motion, planes and regions are '
+                                'found on every k-th row and column of larger images (640x480 at 320x240), the '
+                                'subject kept at full resolution; lower it on a slow machine (fewer frames find '
+                                'a small subject)', 1000, 100_000_000)
+    seed: int = parameter(0, 'RANSAC seed (repeatable plane fits)', 0, 2**31 - 1)
 
     def __post_init__(self):
-        checks = {'noise_sigmas': self.noise_sigmas > 0, 'min_noise_c': self.min_noise_c > 0,
-                  'motion_lag': self.motion_lag >= 1, 'motion_memory': self.motion_memory >= 1,
-                  'max_planes': self.max_planes >= 0, 'min_plane_extent': self.min_plane_extent > 0,
-                  'plane_refresh': self.plane_refresh >= 1, 'attach_distance': self.attach_distance >= 0,
-                  'min_subject_points': self.min_subject_points >= 1, 'max_pixels': self.max_pixels >= 1000}
-        bad = [name for name, ok in checks.items() if not ok]
-        if bad:
-            raise ValueError('segmentation parameter(s) out of range: '
-                             + ', '.join(f'{n}={getattr(self, n)}' for n in bad))
+        validate(self)
 
 
 @dataclass
