@@ -46,7 +46,7 @@ setup(
     tests_require=['pytest'],
     entry_points={
         'console_scripts': [
-            'skel-extract = skel_extract_ros.cli:main',
+            'skel-extract = skel_extract_ros.app.cli:main',
             'registration_node = skel_extract_ros.nodes.registration_node:main',
             'accumulator_node = skel_extract_ros.nodes.accumulator_node:main',
             'joint_estimation_node = skel_extract_ros.nodes.joint_estimation_node:main',

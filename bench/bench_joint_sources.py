@@ -8,7 +8,7 @@ and 3 run twice on the same rest points and observed points: on the registered p
 on the true trajectories of the material points they started on (each registered point
 tied to the true surface at the registration's first frame and carried by its bone: what
 a perfect registration would give). Both are learned on all the frames (window_size larger
-than the clip) and scored with the yardstick (skel_extract_ros.evaluation). The gap between
+than the clip) and scored with the yardstick (skel_extract_ros.app.evaluation). The gap between
 the two rows is what the registration costs the joints; what is left on the perfect row is
 the structure's and the joint placement's.
 """
@@ -29,9 +29,9 @@ from bench_real_motion import half, simulate_and_run, subjects  # noqa: E402
 from skel_extract_ros.codecs.bag import read_cloud_frames, select_cloud_topic  # noqa: E402
 from skel_extract_ros.core.growth import GrowthSchedule  # noqa: E402
 from skel_extract_ros.core.pipeline import SkeletonPipeline  # noqa: E402
-from skel_extract_ros.evaluation import (GroundTruth, PredictedSkeleton, evaluate_joints,  # noqa: E402
+from skel_extract_ros.app.evaluation import (GroundTruth, PredictedSkeleton, evaluate_joints,  # noqa: E402
                                          match_frames, registration_span)
-from skel_extract_ros.evaluation.registration import _material_trajectories  # noqa: E402
+from skel_extract_ros.app.evaluation.registration import _material_trajectories  # noqa: E402
 
 
 def joint_scores(bag: Path) -> dict:

@@ -44,7 +44,7 @@ from bench_real_motion import CLI, subjects  # noqa: E402
 from skel_extract_ros.codecs.bag import read_cloud_frames, select_cloud_topic  # noqa: E402
 from skel_extract_ros.core.live import ArticulatedTracker, CameraTracker, LiveJointTracker  # noqa: E402
 from skel_extract_ros.core.pipeline import SkeletonPipeline  # noqa: E402
-from skel_extract_ros.evaluation import GroundTruth, PredictedSkeleton, evaluate_joints  # noqa: E402
+from skel_extract_ros.app.evaluation import GroundTruth, PredictedSkeleton, evaluate_joints  # noqa: E402
 
 
 def simulated_bag(name, source_args, scene, frames, work: Path) -> Path:

@@ -13,7 +13,7 @@ whole clip when shorter), in an empty scene and in a room (floor, walls, a table
 Walks keep their travel (towards the camera, which stays within 4.5 m); runs are put on a
 treadmill (`simulate --treadmill`), since 5 m in two seconds leaves any depth camera's view.
 `skel-extract run` is started as a user starts it (a subprocess, default parameters) and
-its files are scored with skel_extract_ros.evaluation (the joints over the registration's
+its files are scored with skel_extract_ros.app.evaluation (the joints over the registration's
 frames: every frame without joints is a miss). Absent data is skipped.
 
 `--seeds` and `--forms` add variants of each bag (other noise seeds; the same frames as
@@ -47,7 +47,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from skel_extract_ros.evaluation import EvaluationError, GroundTruth, evaluate_outputs  # noqa: E402
+from skel_extract_ros.app.evaluation import EvaluationError, GroundTruth, evaluate_outputs  # noqa: E402
 
 DATA = Path(os.environ.get('SKEL_SHARED_DATA', REPO.parent / 'shared' / 'data'))
 CLI = shutil.which('skel-extract', path=str(Path(sys.executable).parent)) or 'skel-extract'

@@ -45,7 +45,7 @@ from skel_extract_ros.core.preprocess import Preprocessor  # noqa: E402
 from skel_extract_ros.core.registration import NonRigidRegistration, RegistrationParams  # noqa: E402
 from skel_extract_ros.core.rest_pose import RestPose  # noqa: E402
 from skel_extract_ros.core.sequence import SequenceRegistration  # noqa: E402
-from skel_extract_ros.evaluation import GroundTruth, evaluate_registration  # noqa: E402
+from skel_extract_ros.app.evaluation import GroundTruth, evaluate_registration  # noqa: E402
 from skel_extract_ros.sim import DepthCamera, Intrinsics, NoiseModel, generate_sequence  # noqa: E402
 from skel_extract_ros.sim.camera import look_at  # noqa: E402
 from skel_extract_ros.sim.sources import simulate_swing  # noqa: E402

@@ -31,7 +31,7 @@ from skel_extract_ros.core.joints import JointEstimation  # noqa: E402
 from skel_extract_ros.core.pipeline import SkeletonPipeline  # noqa: E402
 from skel_extract_ros.core.joint_centres import joint_trajectories, solve_joints  # noqa: E402
 from skel_extract_ros.core.structure import StructureParams, extract_structure  # noqa: E402
-from skel_extract_ros.evaluation import GroundTruth, PredictedSkeleton, evaluate_joints  # noqa: E402
+from skel_extract_ros.app.evaluation import GroundTruth, PredictedSkeleton, evaluate_joints  # noqa: E402
 from skel_extract_ros.sim import generate_sequence  # noqa: E402
 
 

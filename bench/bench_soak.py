@@ -25,7 +25,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from skel_extract_ros.replay.node_processes import start_nodes, stop_nodes, use_large_message_profile  # noqa: E402
+from skel_extract_ros.app.replay.node_processes import start_nodes, stop_nodes, use_large_message_profile  # noqa: E402
 
 OUTPUTS = ('filtered_points', 'registered_points', 'skeleton/joints')
 
@@ -48,7 +48,7 @@ def rss_mb(pid: int) -> float:
 def default_bag(work: Path) -> Path:
     bag = work / 'soak_human_room'
     if not (bag / 'metadata.yaml').is_file():
-        subprocess.run([sys.executable, '-m', 'skel_extract_ros.cli', 'simulate', '--subject', 'human',
+        subprocess.run([sys.executable, '-m', 'skel_extract_ros.app.cli', 'simulate', '--subject', 'human',
                         '--frames', '300', '--scene', 'room', '--out', str(bag)], check=True,
                        capture_output=True)
     return bag

@@ -29,9 +29,9 @@ from std_msgs.msg import String
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from skel_extract_ros.evaluation import (GroundTruth, PredictedSkeleton, evaluate_joints,  # noqa: E402
+from skel_extract_ros.app.evaluation import (GroundTruth, PredictedSkeleton, evaluate_joints,  # noqa: E402
                                          evaluate_registration, match_frames)
-from skel_extract_ros.replay import looped_stamp  # noqa: E402
+from skel_extract_ros.app.replay import looped_stamp  # noqa: E402
 
 
 def live_joints(recording: Path) -> PredictedSkeleton:

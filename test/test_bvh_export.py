@@ -1,4 +1,4 @@
-"""skeleton.bvh (skel_extract_ros/bvh_export.py), read back with bvhio, the BVH library the
+"""skeleton.bvh (skel_extract_ros/app/bvh_export.py), read back with bvhio, the BVH library the
 simulator uses: a synthetic branching skeleton with known motion, the sample bag's
 `skel-extract run` output, and bad input."""
 import json
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from skel_extract_ros.bvh_export import skeleton_motion, write_skeleton_bvh
+from skel_extract_ros.app.bvh_export import skeleton_motion, write_skeleton_bvh
 
 # root 2 with three chains of two: 2 -> 0 -> 1, 2 -> 3 -> 4, 2 -> 5 -> 6 (the root is not
 # joint 0, so the file order differs from the joint order)

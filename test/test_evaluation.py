@@ -4,7 +4,7 @@ import json
 import numpy as np
 import pytest
 
-from skel_extract_ros.evaluation import (EvaluationError, GroundTruth, PredictedSkeleton,
+from skel_extract_ros.app.evaluation import (EvaluationError, GroundTruth, PredictedSkeleton,
                                          evaluate_joints, evaluate_registration, match_frames)
 from skel_extract_ros.sim import generate_sequence
 

@@ -63,7 +63,7 @@ def test_rviz_config_shows_the_subject_cloud_markers_and_joints():
                       'rviz_default_plugins/MarkerArray': 'skeleton/markers',
                       'rviz_default_plugins/PoseArray': 'skeleton/joints'}
     # relative names (the launch file's namespace applies), published by the nodes
-    from skel_extract_ros.replay import OUTPUT_TOPICS
+    from skel_extract_ros.app.replay import OUTPUT_TOPICS
     published = {topic for topic, _type, _latched in OUTPUT_TOPICS}
     assert set(topics.values()) <= published
     assert set(displays['rviz_default_plugins/MarkerArray']['Namespaces']) == {'joints', 'names', 'bones'}

@@ -19,7 +19,7 @@ from pykdtree.kdtree import KDTree
 points = np.random.default_rng(0).uniform(size=(20000, 3))
 KDTree(points).query(points, k=8)
 if sys.argv[1] == 'replay':
-    from skel_extract_ros.replay import use_large_message_profile
+    from skel_extract_ros.app.replay import use_large_message_profile
     use_large_message_profile()
 print(start, len(os.listdir('/proc/self/task')), os.environ.get('OMP_NUM_THREADS'),
       os.environ.get('OPENBLAS_NUM_THREADS'), os.environ.get('FASTRTPS_DEFAULT_PROFILES_FILE'))

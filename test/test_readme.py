@@ -57,7 +57,7 @@ def test_colcon_comes_before_the_live_camera_and_the_examples_match_the_sample_b
 
 
 def test_node_graph_and_contract_cover_every_topic():
-    from skel_extract_ros.replay import OUTPUT_TOPICS
+    from skel_extract_ros.app.replay import OUTPUT_TOPICS
     graph = README[README.index('```mermaid'):]
     graph = graph[:graph.index('```', 3)]
     for node in ('registration_node', 'accumulator_node', 'joint_estimation_node'):

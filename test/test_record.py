@@ -118,7 +118,7 @@ def test_record_rotations_are_skeleton_bvhs_and_its_bvh_replays_the_positions(re
     for b, p in enumerate(parents):
         if p >= 0:
             local[:, b] = np.transpose(world[:, p], (0, 2, 1)) @ world[:, b]
-    from skel_extract_ros.bvh_export import euler_channels
+    from skel_extract_ros.app.bvh_export import euler_channels
     expected = euler_channels(local)                                        # (F, J, 3) z x y degrees
     text = (out / 'skeleton.bvh').read_text().split('MOTION')
     order = [line.split()[1] for line in text[0].splitlines() if line.strip().split()[:1] in (['ROOT'], ['JOINT'])]

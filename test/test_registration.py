@@ -10,7 +10,7 @@ from skel_extract_ros.core.rigid import rotations_from_h, weighted_rigid_fit
 from skel_extract_ros.core.rest_pose import RestPose
 from skel_extract_ros.core.segmentation import SegmentationParams
 from skel_extract_ros.core.sequence import SequenceRegistration
-from skel_extract_ros.evaluation import GroundTruth, evaluate_registration
+from skel_extract_ros.app.evaluation import GroundTruth, evaluate_registration
 from skel_extract_ros.sim import NoiseModel, generate_sequence
 
 

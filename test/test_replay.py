@@ -123,7 +123,7 @@ def test_replay_bad_input_is_one_line(tmp_path, sample_bag):
 def test_looped_stamps_move_on_by_a_period_across_passes_and_bounce_mirrors():
     """replay --loop: each pass moved on by the bag's length and one period; with --bounce
     the odd passes run backwards, the stamps still one period apart across every seam."""
-    from skel_extract_ros.replay import looped_stamp
+    from skel_extract_ros.app.replay import looped_stamp
     period = 33_333_333
     bag = 1_700_000_000_000_000_000 + period * np.arange(4)
     pass_ns, mirror_ns = 4 * period, int(bag[0] + bag[-1])
@@ -139,7 +139,7 @@ def test_looped_stamps_move_on_by_a_period_across_passes_and_bounce_mirrors():
 
 def test_bounce_refuses_a_bag_larger_than_half_the_available_memory(sample_bag, monkeypatch):
     """--bounce holds the bag's messages; one that would not fit says so before any node starts."""
-    from skel_extract_ros import replay as replay_module
+    from skel_extract_ros.app import replay as replay_module
     from skel_extract_ros.codecs.bag import select_cloud_topic
     topic = select_cloud_topic(sample_bag, None)
     assert len(replay_module._held_messages(sample_bag, topic)) == 60

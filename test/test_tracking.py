@@ -12,8 +12,8 @@ from skel_extract_ros.core.preprocess import Preprocessor
 from skel_extract_ros.core.recapture import lost_parts, rigid_onto
 from skel_extract_ros.core.registration import NonRigidRegistration, ObservedView, RegistrationParams
 from skel_extract_ros.core.rest_pose import RestPose
-from skel_extract_ros.evaluation import GroundTruth
-from skel_extract_ros.evaluation.registration import _material_trajectories
+from skel_extract_ros.app.evaluation import GroundTruth
+from skel_extract_ros.app.evaluation.registration import _material_trajectories
 from skel_extract_ros.sim.sources import simulate_mocap, simulate_swing
 from skel_extract_ros.sim.stress import hand_speed, swing_phases
 

@@ -37,7 +37,7 @@ from std_msgs.msg import String
 from trajectory_msgs.msg import MultiDOFJointTrajectory, MultiDOFJointTrajectoryPoint
 from visualization_msgs.msg import MarkerArray
 
-from ..bvh_export import bone_rotations, point_fit_rotations
+from ..core.bone_rotations import bone_rotations, point_fit_rotations
 from ..core.skeleton_model import SkeletonModel
 from .common import LATCHED_QOS, STREAM_QOS
 from ..codecs.messages import description_document, pose_array, skeleton_markers, stamp_ns

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..progress import progress_bar
+from ..app.progress import progress_bar
 from .animated import AnimatedBody
 from .camera import DepthCamera, Intrinsics, NoiseModel, look_at
 from .meshes import inside_any, mesh_area, sample_surface

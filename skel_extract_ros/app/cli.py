@@ -21,8 +21,8 @@ class UserError(Exception):
 def _simulate_sequence(args):
     """The sequence `simulate` asked for: a built-in subject, a BVH clip, a rig or a mesh
     sequence (exactly one)."""
-    from .sim import NoiseModel, generate_sequence
-    from .sim import sources
+    from ..sim import NoiseModel, generate_sequence
+    from ..sim import sources
 
     noise = NoiseModel.kinect() if args.noise == 'kinect' else NoiseModel.none()
     chosen = [name for name in ('subject', 'bvh', 'rig', 'mesh_sequence') if getattr(args, name)]
@@ -53,7 +53,7 @@ def _simulate_sequence(args):
 
 
 def _cmd_simulate(args) -> int:
-    from .sim.output import write_simulated_bag
+    from ..sim.output import write_simulated_bag
 
     out = Path(args.out)
     if out.exists():
@@ -72,7 +72,7 @@ def _cmd_simulate(args) -> int:
           f'valid points per frame {counts.min()}-{counts.max()} (median {int(np.median(counts))}), '
           f'subject {subject.min()}-{subject.max()}; '
           f'{len(sequence.ground_truth["joint_names"])} ground-truth joints')
-    from .codecs.bag import select_cloud_topic
+    from ..codecs.bag import select_cloud_topic
     print(f'bag: {out}  topic: {select_cloud_topic(out)}  ground truth: {gt_path}')
     return 0
 
@@ -109,10 +109,10 @@ def _parse_frame_range(text: str | None):
 def _cmd_run(args) -> int:
     import itertools
 
-    from .codecs.bag import BagError, cloud_topics, read_cloud_frames, select_cloud_topic
-    from .config import ParamsError, load_params_file, pipeline_params
-    from .core.pipeline import SkeletonPipeline
-    from .core.structure import StructureError
+    from ..codecs.bag import BagError, cloud_topics, read_cloud_frames, select_cloud_topic
+    from ..config import ParamsError, load_params_file, pipeline_params
+    from ..core.pipeline import SkeletonPipeline
+    from ..core.structure import StructureError
     from .outputs import write_registered, write_skeleton
     from .progress import progress_bar
 
@@ -225,8 +225,8 @@ def _score_if_simulated(bag: Path, out: Path) -> None:
 
 
 def _cmd_replay(args) -> int:
-    from .codecs.bag import BagError
-    from .config import ParamsError
+    from ..codecs.bag import BagError
+    from ..config import ParamsError
     from .progress import progress_bar
     from .replay import ReplayError, replay
 
@@ -289,7 +289,7 @@ def _cmd_record(args) -> int:
 
 
 def _cmd_info(args) -> int:
-    from .codecs.bag import BagError, read_cloud_frames, select_cloud_topic
+    from ..codecs.bag import BagError, read_cloud_frames, select_cloud_topic
     try:
         topic = select_cloud_topic(args.input, args.topic)
         counts, stamps, frame_ids, layout = [], [], set(), None
@@ -317,8 +317,8 @@ TOPIC_HELP = ('the bag\'s PointCloud2 topic, or its depth Image topic (16UC1 mm 
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from .sim import SUBJECTS
-    from .sim.camera import RESOLUTIONS
+    from ..sim import SUBJECTS
+    from ..sim.camera import RESOLUTIONS
 
     parser = argparse.ArgumentParser(
         prog='skel-extract',

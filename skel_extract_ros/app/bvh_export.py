@@ -53,12 +53,11 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .core.rigid import fit_rigid_segments, rotations_from_h
+from ..core.bone_rotations import bone_rotations, children_of, depth_first, point_fit_rotations
 
 ROTATION_CHANNELS = ('Zrotation', 'Xrotation', 'Yrotation')
 _EULER_ORDER = 'ZXY'            # intrinsic: R = Rz Rx Ry, the channel order above
 DEFAULT_FRAME_TIME = 1.0 / 30.0
-_HINT_WEIGHT = 1e-9             # the twist hint decides only what the child offsets leave open
 
 
 @dataclass
@@ -92,7 +91,7 @@ class BvhMotion:
     def text(self) -> str:
         """The BVH file."""
         lines = ['HIERARCHY']
-        children = _children(self.parents)
+        children = children_of(self.parents)
 
         def joint(b, depth):
             indent = '\t' * depth
@@ -122,24 +121,6 @@ def _numbers(values) -> str:
     return ' '.join(f'{v:.6f}' for v in np.asarray(values, dtype=np.float64))
 
 
-def _children(parents) -> list:
-    return [[int(c) for c in np.flatnonzero(parents == b)] for b in range(len(parents))]
-
-
-def _depth_first(parents) -> np.ndarray:
-    roots = np.flatnonzero(parents < 0)
-    if len(roots) != 1:
-        raise ValueError(f'the joint tree must have exactly one root, has {len(roots)}')
-    children, order, stack = _children(parents), [], [int(roots[0])]
-    while stack:
-        b = stack.pop()
-        order.append(b)
-        stack.extend(reversed(children[b]))
-    if len(order) != len(parents):
-        raise ValueError('the joint tree is not connected (a parent index loops or is out of range)')
-    return np.array(order)
-
-
 def euler_channels(rotations) -> np.ndarray:
     """(F, J, 3) degrees [z, x, y] of rotations (F, J, 3, 3), R = Rz Rx Ry, each channel
     unwrapped over the frames (adding 360 deg to one angle keeps the rotation)."""
@@ -158,7 +139,7 @@ def forward_kinematics(parents, offsets, root_positions, local_rotations) -> np.
     F, J = local_rotations.shape[:2]
     world = np.empty((F, J, 3, 3))
     positions = np.empty((F, J, 3))
-    for b in _depth_first(parents):   # loop over joints, vectorised over frames
+    for b in depth_first(parents):   # loop over joints, vectorised over frames
         p = parents[b]
         if p < 0:
             world[:, b] = local_rotations[:, b]
@@ -169,49 +150,6 @@ def forward_kinematics(parents, offsets, root_positions, local_rotations) -> np.
     return positions
 
 
-def point_fit_rotations(rest_points, labels, registered, n_bones: int) -> np.ndarray:
-    """(F, B, 3, 3) each bone's rigid fit (Kabsch) of its rest points (M, 3), labels (M,),
-    onto its registered points (F, M, 3); NaN for frames with non-finite points and for
-    bones without points."""
-    registered = np.asarray(registered, dtype=np.float64)
-    result = np.full((len(registered), n_bones, 3, 3), np.nan)
-    finite = np.isfinite(registered).all(axis=(1, 2))
-    if finite.any():
-        result[finite] = fit_rigid_segments(np.asarray(rest_points, dtype=np.float64), registered[finite],
-                                             labels, n_bones)[0]
-    result[:, np.bincount(labels, minlength=n_bones)[:n_bones] == 0] = np.nan
-    return result
-
-
-def bone_rotations(parents, rest_joints, positions, hints=None) -> np.ndarray:
-    """(F, J, 3, 3) world rotation (rest -> frame) of every bone from the joint positions
-    (F, J, 3): the Kabsch fit of the rest offsets of its child joints onto the frame's, the
-    twist left open (one child, or none) taken nearest `hints` (F, J, 3, 3; NaN where
-    unknown) or else the parent's rotation. Frames must be finite."""
-    parents = np.asarray(parents)
-    rest_joints = np.asarray(rest_joints, dtype=np.float64)
-    F, J = positions.shape[:2]
-    children = _children(parents)
-    world = np.empty((F, J, 3, 3))
-    for b in _depth_first(parents):   # parents first
-        p = parents[b]
-        hint = np.broadcast_to(np.eye(3), (F, 3, 3)).copy() if p < 0 else world[:, p].copy()
-        if hints is not None:
-            known = np.isfinite(hints[:, b]).all(axis=(1, 2))
-            hint[known] = hints[known, b]
-        H = np.zeros((F, 3, 3))
-        scale = np.zeros(F)
-        for c in children[b]:
-            rest = rest_joints[c] - rest_joints[b]
-            now = positions[:, c] - positions[:, b]
-            H += rest[None, :, None] * now[:, None, :]                     # tr(R u v^T) = v . R u
-            scale += np.linalg.norm(rest) * np.linalg.norm(now, axis=1)
-        weight = np.where(scale > 0, _HINT_WEIGHT * scale, 1.0)
-        H += weight[:, None, None] * np.transpose(hint, (0, 2, 1))          # tr(R W^T) = <R, W>
-        world[:, b] = rotations_from_h(H)
-    return world
-
-
 def end_sites(parents, rest_joints, rest_points=None, labels=None) -> np.ndarray:
     """(J, 3) End Site offsets (m, rest frame) of the leaves, zero elsewhere: the farthest
     rest point of the bone along the direction from its joint to its centroid (the main
@@ -219,7 +157,7 @@ def end_sites(parents, rest_joints, rest_points=None, labels=None) -> np.ndarray
     continues the direction from its parent joint by the same length."""
     parents = np.asarray(parents)
     rest_joints = np.asarray(rest_joints, dtype=np.float64)
-    children = _children(parents)
+    children = children_of(parents)
     result = np.zeros((len(parents), 3))
     for b in (b for b in range(len(parents)) if not children[b]):
         points = (np.asarray(rest_points, dtype=np.float64)[np.asarray(labels) == b]
@@ -255,7 +193,7 @@ def skeleton_motion(names, parents, rest_joints, stamps, positions, rest_points=
         raise ValueError(f'{len(names)} names and {len(rest_joints)} rest joints for {J} parents')
     if len(stamps) != F:
         raise ValueError(f'{len(stamps)} stamps for {F} frames of joint positions')
-    order = _depth_first(parents)
+    order = depth_first(parents)
     names = [str(n).replace(' ', '_') or f'joint_{i}' for i, n in enumerate(names)]
     if len(set(names)) != J:
         raise ValueError(f'joint names must be unique: {names}')

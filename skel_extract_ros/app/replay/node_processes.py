@@ -20,7 +20,7 @@ def use_large_message_profile() -> None:
     FASTRTPS_DEFAULT_PROFILES_FILE to the packaged 4 MB profile unless it or
     FASTDDS_DEFAULT_PROFILES_FILE is set; call before rclpy.init (Fast DDS reads it once),
     the nodes started after inherit it."""
-    from ..config import fastdds_profile_file
+    from ...config import fastdds_profile_file
     profile = fastdds_profile_file()
     if profile is not None and not (os.environ.get('FASTRTPS_DEFAULT_PROFILES_FILE')
                                     or os.environ.get('FASTDDS_DEFAULT_PROFILES_FILE')):

@@ -66,7 +66,7 @@ class _Recorder:
                  lossless: bool = True):
         from rclpy.serialization import deserialize_message
 
-        from ..nodes.common import LATCHED_QOS, SENSOR_QOS, STREAM_QOS
+        from ...nodes.common import LATCHED_QOS, SENSOR_QOS, STREAM_QOS
         input_qos = STREAM_QOS if lossless else SENSOR_QOS     # realtime: as a camera driver
         self.node, self.writer, self.received = node, writer, received
         self._deserialize = deserialize_message
@@ -87,8 +87,8 @@ class _Recorder:
                                      LATCHED_QOS if latched else STREAM_QOS, raw=True)
 
     def _on_message(self, topic: str, type_name: str, raw: bytes) -> None:
-        from ..codecs.messages import pose_array_positions, stamp_ns
-        from ..codecs.pointcloud import decode_xyz
+        from ...codecs.messages import pose_array_positions, stamp_ns
+        from ...codecs.pointcloud import decode_xyz
         now = time.perf_counter()
         self.writer.write(self.connections[topic], time.time_ns(), raw)
         # markers, trajectory and confidence are recorded only: the files do not need them

@@ -51,7 +51,7 @@ class ReplayError(RuntimeError):
 def _held_messages(input_path: Path, topic: str) -> list:
     """The raw messages of `topic`, in memory (for passes played backwards); ReplayError when
     they would take more than half the memory the system has available."""
-    from ..codecs.bag import _raw_messages
+    from ...codecs.bag import _raw_messages
     budget = _available_memory_bytes() // 2
     held, size = [], 0
     for _time, raw in _raw_messages(input_path, topic):
@@ -107,9 +107,9 @@ class _Replay:
                  progress, realtime, loops, bounce):
         from rclpy.serialization import deserialize_message
 
-        from ..codecs.bag import _raw_messages, camera_info_topic, cloud_topics, is_depth_topic, select_cloud_topic
-        from ..codecs.messages import stamp_ns
-        from ..config import default_params_file, load_params_file
+        from ...codecs.bag import _raw_messages, camera_info_topic, cloud_topics, is_depth_topic, select_cloud_topic
+        from ...codecs.messages import stamp_ns
+        from ...config import default_params_file, load_params_file
         if rate < 0:
             raise ReplayError(f'--rate must be >= 0 (0 = as fast as possible), got {rate}')
         if realtime and rate == 0:
@@ -145,8 +145,8 @@ class _Replay:
     def run(self) -> dict:
         from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
 
-        from ..codecs.bag import typestore
-        from ..nodes.background import BackgroundNode
+        from ...codecs.bag import typestore
+        from ...nodes.background import BackgroundNode
         use_large_message_profile()
         helper = BackgroundNode('skel_extract_replay', self.namespace)
         self.processes = start_nodes(self.params_file, self.namespace, self.out / 'logs', self.depth_image,
@@ -216,8 +216,8 @@ class _Replay:
         (perf_counter s): realtime, once the nodes went quiet."""
         from rclpy.serialization import deserialize_message, serialize_message
 
-        from ..codecs.bag import _raw_messages
-        from ..codecs.messages import stamp_ns
+        from ...codecs.bag import _raw_messages
+        from ...codecs.messages import stamp_ns
         received, n_frames = self.received, self.n_frames
         first_stamp, previous, pass_ns, mirror_ns = None, None, 0, 0
 

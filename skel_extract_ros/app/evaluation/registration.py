@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..core.point_sets import median_spacing
+from ...core.point_sets import median_spacing
 from .data import EvaluationError, GroundTruth, match_frames
 
 

@@ -38,7 +38,7 @@ def write_skeleton(out: Path, joint_names: list, parents, rest_joints, frame_id:
     map a frame's row in stamps to its registered (M, 3), observed (N, 3) and whole-view
     (K, 3) points; rest_points (M, 3) and labels (M,) the model's."""
     from .bvh_export import write_skeleton_bvh
-    from .core.skeleton_model import skeleton_document
+    from ..core.skeleton_model import skeleton_document
     from .visualization import draw_skeleton_png
 
     document = skeleton_document(joint_names, parents, rest_joints, stamps, positions, frame_id, confidence)
