@@ -29,7 +29,8 @@ from std_srvs.srv import Trigger
 from ..core.growth import SkeletonGrowth
 from ..core.structure import StructureError
 from .common import (LATCHED_QOS, STREAM_QOS, StampPairer, ThrottledLog, WorkingNode, declare_params,
-                     decode_or_warn, decode_registered_or_warn, on_live_parameters, release_freed_memory, run_node)
+                     decode_registered_or_warn, decode_rest_or_warn, on_live_parameters, release_freed_memory,
+                     run_node)
 from ..codecs.messages import stamp_ns, structure_document
 from .diagnostics import OK, WARN, NodeDiagnostics
 from .worker import RateMeter, Worker
@@ -75,10 +76,9 @@ class AccumulatorNode(WorkingNode):
 
     # -- inputs ----------------------------------------------------------------------------
     def _on_rest(self, msg: PointCloud2) -> None:
-        rest = decode_or_warn(msg, self.log, 'rest_points', np.float64)
-        if rest is None:
+        if (decoded := decode_rest_or_warn(msg, self.log)) is None:
             return
-        rest_stamp = stamp_ns(msg.header)
+        rest, rest_stamp = decoded
         with self._lock:
             # frames of the new rest pose may have come in before it (two topics, no order)
             old = [s for s in self.frames if s < rest_stamp or len(self.frames[s]) != len(rest)]

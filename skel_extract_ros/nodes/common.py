@@ -142,6 +142,15 @@ class ThrottledLog:
         self._logger.warning(message)
 
 
+def decode_rest_or_warn(msg, log: ThrottledLog) -> tuple | None:
+    """(rest points Q (M, 3) float64, stamp ns) of a rest_points message, or None (warned)."""
+    import numpy as np
+
+    from ..codecs.messages import stamp_ns
+    rest = decode_or_warn(msg, log, 'rest_points', np.float64)
+    return None if rest is None else (rest, stamp_ns(msg.header))
+
+
 def decode_or_warn(msg, log: ThrottledLog, what: str, dtype=None):
     """x, y, z of a PointCloud2 from another node, or None after a throttled warning naming
     the topic; dtype defaults to float32 (float64 for the exact rest points)."""

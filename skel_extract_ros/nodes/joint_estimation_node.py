@@ -56,8 +56,8 @@ from ..core.point_sets import finite_rows
 from ..core.skeleton_model import SkeletonModel
 from ..core.structure import SkeletalStructure
 from .common import (LATCHED_QOS, STREAM_QOS, StampPairer, ThrottledLog, WorkingNode,
-                     declare_params, decode_or_warn, decode_registered_or_warn, on_live_parameters,
-                     release_freed_memory, run_node)
+                     declare_params, decode_or_warn, decode_registered_or_warn, decode_rest_or_warn,
+                     on_live_parameters, release_freed_memory, run_node)
 from ..codecs.messages import cloud_message, parse_structure, stamp_ns
 from .diagnostics import OK, WARN, NodeDiagnostics
 from .skeleton_output import SkeletonOutput, registered_hints
@@ -90,7 +90,7 @@ class JointEstimationNode(WorkingNode):
         self.registered_only = collections.OrderedDict()  # stamp -> (header, registered): live input
         self.tracker = None                  # LiveJointTracker of the current model
         self.described = None                # its DescribedSkeleton (names, version)
-        self.camera = None                   # its CameraTracker (live_frames camera)
+        self.camera_tracker = None           # its CameraTracker (live_frames camera)
         self.model_parents = None
         self._provisional = False            # the tracked model is Step 2's, Alg. 2 still running
         self.last_published = None           # stamp of the newest frame with joints published
@@ -121,14 +121,14 @@ class JointEstimationNode(WorkingNode):
             self.output.joint_diameter = float(own.joint_diameter)
             if self.tracker is not None:       # the model tracked now, from its next frame
                 self.tracker.sweeps = self.live_sweeps
-                self.camera.tracker.iterations = self.live_iterations
+                self.camera_tracker.tracker.iterations = self.live_iterations
 
     # -- inputs ----------------------------------------------------------------------------
     def _on_rest(self, msg: PointCloud2) -> None:
-        rest = decode_or_warn(msg, self.log, 'rest_points', np.float64)
-        if rest is None:
+        decoded = decode_rest_or_warn(msg, self.log)
+        if decoded is None:
             return
-        rest_stamp = stamp_ns(msg.header)
+        rest, rest_stamp = decoded
         with self._lock:
             self.rest, self.rest_stamp = rest, rest_stamp
             # frames of this rest pose may have come in before it (two topics, no order)
@@ -136,7 +136,7 @@ class JointEstimationNode(WorkingNode):
                 for stamp in [s for s in frames if s < rest_stamp]:
                     del frames[stamp]
             had_model = self.tracker is not None
-            self.tracker, self.camera, self.last_published = None, None, None
+            self.tracker, self.camera_tracker, self.last_published = None, None, None
             early, self._early_structure = self._early_structure, None
         if had_model:
             self.get_logger().info('new rest pose: live joints pause until the next skeleton/structure')
@@ -314,7 +314,7 @@ class JointEstimationNode(WorkingNode):
             since = done if self.tracker is None else self.last_published
             catch_up = [(s, v) for s, v in self.registered_only.items()
                         if (since is None or s > since) and s not in in_window]
-            self.tracker, self.camera, self.model_parents = tracker, camera, model.parents
+            self.tracker, self.camera_tracker, self.model_parents = tracker, camera, model.parents
             self.described = described
             self._provisional = provisional
             published = [stamps[-1]] + [s for s, _ in catch_up[-1:]]
@@ -370,7 +370,7 @@ class JointEstimationNode(WorkingNode):
                 return
             registered_stamp = newest[-1]
             registered = self.registered_only[registered_stamp][1]
-            camera, described = self.camera, self.described
+            camera, described = self.camera_tracker, self.described
             self.last_published = stamp
         started = time.perf_counter()
         camera.registered(registered_stamp, registered)      # nothing to do when already taken
