@@ -4,11 +4,9 @@ Every node process runs OpenMP and OpenBLAS on one thread, unless OMP_NUM_THREAD
 OPENBLAS_NUM_THREADS say otherwise. The nodes share the machine's cores between processes
 (three nodes, the registration child, the camera driver); a thread pool inside one of them
 (pykdtree's k-d tree queries in the outlier removal and every E-step, numpy's matrix
-products) keeps its threads spinning between calls and takes the cores from the others.
-Measured through the nodes (bench/README.md, "One thread per node process"): on depth
-images of real motion in the room, latency median / p95 32-58 / 60-90 ms -> 24-44 / 34-67
-ms, and the niced registration registers 1.7x the frames. Set here, before any node
-module imports numpy or pykdtree: both libraries read these once, when they are loaded.
+products) keeps its threads spinning between calls and takes the cores from the others
+(bench/HISTORY.md, "One thread per node process"). Set here, before any node module
+imports numpy or pykdtree: both libraries read these once, when they are loaded.
 """
 import os
 

@@ -177,8 +177,8 @@ def decode_registered_or_warn(msg, log: ThrottledLog, rest):
 def release_freed_memory() -> None:
     """Hand the heap freed by a large job (Alg. 2, a structure extraction, a Poisson rest
     pose) back to the system. glibc keeps freed memory in its per-thread arenas, so a node
-    keeps its peak for good (measured: 80 MB after Alg. 2 on a 40-frame window, released
-    by malloc_trim); no-op where libc has no malloc_trim (musl, macOS)."""
+    keeps its peak for good; malloc_trim releases it. No-op where libc has no malloc_trim
+    (musl, macOS)."""
     import ctypes
     import ctypes.util
     try:

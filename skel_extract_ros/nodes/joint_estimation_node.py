@@ -261,9 +261,9 @@ class JointEstimationNode(WorkingNode):
         structure = SkeletalStructure(labels, parents, rotations, translations, document['joints'],
                                       document['boundary_centroids'])
         if self.provisional_skeleton and self.live_frames == 'camera':
-            # Step 2's skeleton, each point on its bone, is tracked while Alg. 2 runs (seconds):
-            # its joints score as Alg. 2's on the real-motion rows (bench/README.md). Alg. 2's
-            # model then replaces it under the same joint names. Not with live_frames
+            # Step 2's skeleton, each point on its bone, is tracked while Alg. 2 runs (seconds),
+            # so joints come before Alg. 2's; Alg. 2's model then replaces it under the same
+            # joint names. Not with live_frames
             # registered: lossless replay publishes Alg. 2's joints for the window, as run does.
             step2 = SkeletonModel(rest, labels, parents, structure.joints, labels[:, None],
                                   np.ones((len(rest), 1)), document['joint_ids'])

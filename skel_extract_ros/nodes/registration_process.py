@@ -8,8 +8,7 @@ numpy call. In its own process it no longer shares a GIL, and its priority can b
 apart from the live path's: while the skeleton is learned, registration is all that
 matters and runs at the node's priority; once the skeleton is tracked, `make_nicer`
 makes the scheduler give a short CPU to learning, not to the live path (nicer, and in the
-idle scheduling class: measured at 30 Hz on 2 cores, bench/README.md "Registration in its
-own process" and "Registration in the idle class").
+idle scheduling class).
 
 Why not multiprocessing: its spawn start imports the node's main module again in the child
 (rclpy and the message packages, about 20 MB), adds a resource-tracker process (13 MB) and
@@ -25,8 +24,7 @@ The rest pose (Open3D's Poisson reconstruction) is built in a child of its own t
 with it (`RestPoseProcess`): Open3D costs a process 170 MB resident for as long as it
 lives, and the node needs it once per rest pose. That child starts when a rest pose is
 wanted (node start, start over), not when the subject's first whole frame comes: its Python
-start and Open3D import (1.6 s on a quiet 2-core machine, 3-4 s beside a 30 Hz camera
-stage) then happen while the segmentation still waits for motion, not on the way to the
+start and Open3D import (seconds) then happen while the segmentation still waits for motion, not on the way to the
 first skeleton.
 """
 from __future__ import annotations
@@ -122,8 +120,7 @@ class RegistrationProcess:
     sched_idle: `make_nicer` also puts the child in Linux's idle scheduling class
     (SCHED_IDLE): it runs when no other task wants the core. A nice value only shares the
     cores in proportion; a live-path thread that wakes while the nicer child runs still
-    waited for the scheduler to preempt it (the cow at 30 Hz on 2 cores: camera stage 26
-    ms against 20.5 ms of its own CPU; bench/README.md "Registration in the idle class").
+    waits for the scheduler to preempt it.
     The child starts at once, at the node's priority. Calls block the calling
     thread (not the GIL) until the child answers; a child that died (out of memory, killed)
     raises ChildProcessDied, and `restart` gives a new one.
