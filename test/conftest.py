@@ -60,14 +60,14 @@ def held_alg2(monkeypatch):
     import threading
 
     from skel_extract_ros.core.joints import JointEstimation
-    from skel_extract_ros.nodes import joint_estimation_node
+    from skel_extract_ros.nodes import joint_stages
     release = threading.Event()
 
     class HeldJointEstimation(JointEstimation):
         def fit(self, *args, **kwargs):
             assert release.wait(60.0), 'the test never released Alg. 2'
             return super().fit(*args, **kwargs)
-    monkeypatch.setattr(joint_estimation_node, 'JointEstimation', HeldJointEstimation)
+    monkeypatch.setattr(joint_stages, 'JointEstimation', HeldJointEstimation)
     yield release
     release.set()          # a node still waiting ends with the test
 

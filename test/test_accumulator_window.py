@@ -148,7 +148,7 @@ def test_registered_frames_left_out_of_the_window_get_joints(ros, live_frames):
     joints = ros.listen('skeleton/joints', PoseArray, STREAM_QOS)
     publish_rest(ros, rest)
     publish_frames(ros, registered, 0)
-    ros.wait(lambda: len(node.buffer) == 12, what='the frames buffered')
+    ros.wait(lambda: len(node.stages.buffer) == 12, what='the frames buffered')
     window = [i for i in range(12) if i != 5]
     structure = extract_structure(rest, registered[window], StructureParams(n_clusters=12))
     document = structure_document(structure, T0, [T0 + i * DT for i in window], 'camera_depth_optical_frame')
@@ -169,7 +169,7 @@ def test_joint_node_buffer_overflow_keeps_the_newest_frames(ros):
     joints = ros.listen('skeleton/joints', PoseArray, STREAM_QOS)
     publish_rest(ros, rest)
     publish_frames(ros, registered, 0)
-    ros.wait(lambda: len(node.buffer) == 8 and min(node.buffer) == T0 + 6 * DT, what='the newest 8 frames kept')
+    ros.wait(lambda: len(node.stages.buffer) == 8 and min(node.stages.buffer) == T0 + 6 * DT, what='the newest 8 frames kept')
     # a structure over frames 0-11: only 6-11 are still buffered; joints come for those,
     # then live joints for 12 and 13
     pub = ros.publisher('skeleton/structure', String, LATCHED_QOS)
@@ -195,7 +195,7 @@ def test_joint_node_follows_a_growing_structure_with_old_key_frames_and_stable_n
     descriptions = ros.listen('skeleton/description', String, LATCHED_QOS)
     publish_rest(ros, rest)
     publish_frames(ros, registered[:8], 0)
-    ros.wait(lambda: len(node.buffer) == 8, what='the first 8 frames buffered')
+    ros.wait(lambda: len(node.stages.buffer) == 8, what='the first 8 frames buffered')
     pub = ros.publisher('skeleton/structure', String, LATCHED_QOS)
 
     def grown(frames, ids, changes):
@@ -207,7 +207,7 @@ def test_joint_node_follows_a_growing_structure_with_old_key_frames_and_stable_n
     first = json.loads(descriptions[0].data)
     assert first['joint_names'] == ['joint_5', 'joint_9'] and first['changes']['added'] == ['joint_5', 'joint_9']
     publish_frames(ros, registered[8:], 8)
-    ros.wait(lambda: len(joints) == 16 and min(node.buffer) == T0 + 8 * DT, what='live joints, 0-7 out of the buffer')
+    ros.wait(lambda: len(joints) == 16 and min(node.stages.buffer) == T0 + 8 * DT, what='live joints, 0-7 out of the buffer')
     key = [0, 2, 4, 6, 9, 11, 13, 15]
     pub.publish(grown(key, [5, 9], {'moved': ['joint_9']}))
     ros.wait(lambda: len(descriptions) == 2, what='the grown description')
@@ -228,13 +228,13 @@ def test_frames_arriving_during_alg2_are_caught_up(ros, held_alg2):
     joints = ros.listen('skeleton/joints', PoseArray, STREAM_QOS)
     publish_rest(ros, rest)
     publish_frames(ros, registered[:12], 0)
-    ros.wait(lambda: len(node.buffer) == 12, what='the window buffered')
+    ros.wait(lambda: len(node.stages.buffer) == 12, what='the window buffered')
     pub = ros.publisher('skeleton/structure', String, LATCHED_QOS)
     pub.publish(structure_message(rest, registered[:12], 0))
-    ros.wait(lambda: node.estimating, what='Alg. 2 running')
+    ros.wait(lambda: node.stages.estimating, what='Alg. 2 running')
     publish_frames(ros, registered[12:], 12)             # while Alg. 2 runs
-    ros.wait(lambda: len(node.registered_only) == 30, what='every frame received during Alg. 2')
-    assert not joints and node.estimating
+    ros.wait(lambda: len(node.stages.registered_only) == 30, what='every frame received during Alg. 2')
+    assert not joints and node.stages.estimating
     held_alg2.set()
     ros.wait(lambda: len(joints) == 30, what='joints for every frame')
     assert sorted(stamps_of(joints)) == [T0 + i * DT for i in range(30)]
@@ -256,15 +256,15 @@ def test_a_model_learned_for_a_replaced_rest_pose_is_not_used(ros, held_alg2):
     descriptions = ros.listen('skeleton/description', String, LATCHED_QOS)
     rest_pub = publish_rest(ros, rest)
     publish_frames(ros, registered, 0)
-    ros.wait(lambda: len(node.buffer) == 12, what='the window buffered')
+    ros.wait(lambda: len(node.stages.buffer) == 12, what='the window buffered')
     ros.publisher('skeleton/structure', String, LATCHED_QOS).publish(structure_message(rest, registered, 0))
-    ros.wait(lambda: node.estimating, what='Alg. 2 running')
+    ros.wait(lambda: node.stages.estimating, what='Alg. 2 running')
     new_rest = rest[::2]                         # another rest pose: other points, later stamp
     rest_pub.publish(cloud_message(new_rest, header(T0 + 100 * DT), float64=True))
-    ros.wait(lambda: node.rest is not None and len(node.rest) == len(new_rest), what='the new rest pose')
+    ros.wait(lambda: node.stages.rest is not None and len(node.stages.rest) == len(new_rest), what='the new rest pose')
     held_alg2.set()
-    ros.wait(lambda: not node.estimating, what='Alg. 2 ending')
-    assert node.tracker is None and not descriptions
+    ros.wait(lambda: not node.stages.estimating, what='Alg. 2 ending')
+    assert node.stages.tracker is None and not descriptions
     assert node._diagnostics()[1] == 'waiting for skeleton/structure'
 
 

@@ -378,7 +378,7 @@ def test_joint_estimation_node_window_then_live(ros):
     ros.wait_matched(rest_pub)
     window = registered[:12]
     _publish_two_bone(ros, rest, window)
-    ros.wait(lambda: len(node.buffer) == 12, what='the window frames buffered')
+    ros.wait(lambda: len(node.stages.buffer) == 12, what='the window frames buffered')
     structure = extract_structure(rest, window, StructureParams(n_clusters=12))
     document = structure_document(structure, T0, [T0 + i * DT for i in range(12)], 'camera_depth_optical_frame')
     pub = ros.publisher('skeleton/structure', String, LATCHED_QOS)
@@ -493,7 +493,7 @@ def _learn_frames_0_to_11_with_12_registered_after(ros, node, rest, registered):
     rest_pub = _publish_rest(ros, rest)
     ros.wait_matched(rest_pub)
     _publish_two_bone(ros, rest, registered[:13])
-    ros.wait(lambda: len(node.buffer) == 13, what='the window frames buffered')
+    ros.wait(lambda: len(node.stages.buffer) == 13, what='the window frames buffered')
     structure = extract_structure(rest, registered[:12], StructureParams(n_clusters=12))
     document = structure_document(structure, T0, [T0 + i * DT for i in range(12)], 'camera_depth_optical_frame')
     ros.publisher('skeleton/structure', String, LATCHED_QOS).publish(String(data=json.dumps(document)))
@@ -518,7 +518,7 @@ def test_joint_estimation_node_live_camera_frames_do_not_wait_for_registration(r
     ros.wait(lambda: len(joints) == 13, what='joints for every window frame and the one after it')
     # the bounds below are Alg. 2's model's (its provisional Step 2 model has a test of its own)
     ros.wait(lambda: len(description) == 2, what="Alg. 2's description")
-    child = [int(p) for p in node.model_parents].index(0)
+    child = [int(p) for p in node.stages.model_parents].index(0)
     # camera frames only: the registration is "late", frame 12 is the newest registered one
     filt_pub = ros.publisher('filtered_points', PointCloud2, STREAM_QOS)
     ros.wait_matched(filt_pub)
@@ -537,7 +537,7 @@ def test_joint_estimation_node_live_camera_frames_do_not_wait_for_registration(r
     # reach is worse, 21 mm (bench/README.md, "Reach").
     assert live_error[0] < 0.7 * held_error[0], (live_error, held_error)
     assert live_error.mean() < 0.85 * held_error.mean(), (live_error, held_error)
-    assert node.live_fits['fitted'] == 11 and node.live.dropped == 0
+    assert node.stages.live_fits['fitted'] == 11 and node.stages.live.dropped == 0
     # every fitted camera frame's posed model (the registration's start), in the registered
     # points' order, closer to the frame's true points than the registered frame's are
     ros.wait(lambda: len(posed) == 11, what='the posed model of every fitted frame')
@@ -566,7 +566,7 @@ def test_joint_estimation_node_tracks_the_step2_skeleton_while_alg2_runs(ros, he
     ros.wait(lambda: len(joints) == 13 and len(description) == 1, what='the provisional skeleton')
     provisional = json.loads(description[0].data)
     assert provisional['provisional'] is True and provisional['changes'] == {}
-    assert node.estimating and 'tracking 2 joints meanwhile' in node._diagnostics()[1]
+    assert node.stages.estimating and 'tracking 2 joints meanwhile' in node._diagnostics()[1]
     child = provisional['parents'].index(0)
     # Step 2's joint (the joint solve on the segments' rigid motion) on the window frames
     window = np.array([_joint(joints[k], child) for k in range(12)])
@@ -584,7 +584,7 @@ def test_joint_estimation_node_tracks_the_step2_skeleton_while_alg2_runs(ros, he
     assert live_error[0] < 0.7 * held_error[0], (live_error, held_error)
     assert live_error.mean() < 0.85 * held_error.mean(), (live_error, held_error)
     held_alg2.set()
-    ros.wait(lambda: len(description) == 2 and not node.estimating, what="Alg. 2's description")
+    ros.wait(lambda: len(description) == 2 and not node.stages.estimating, what="Alg. 2's description")
     refined = json.loads(description[1].data)
     assert refined['provisional'] is False and refined['changes'] == {}
     assert refined['joint_names'] == provisional['joint_names'] and refined['parents'] == provisional['parents']
@@ -642,7 +642,7 @@ def test_joint_estimation_node_ignores_malformed_structures(ros, monkeypatch, ma
     ros.wait_matched(rest_pub)
     joints = ros.listen('skeleton/joints', PoseArray, STREAM_QOS)
     _publish_two_bone(ros, rest, registered)
-    ros.wait(lambda: node.rest is not None and len(node.buffer) == 6, what='the rest pose and 6 frames')
+    ros.wait(lambda: node.stages.rest is not None and len(node.stages.buffer) == 6, what='the rest pose and 6 frames')
     structure = extract_structure(rest, registered, StructureParams(n_clusters=12))
     document = structure_document(structure, T0, [T0 + i * DT for i in range(6)], 'camera_depth_optical_frame')
     pub = ros.publisher('skeleton/structure', String, LATCHED_QOS)
@@ -661,7 +661,7 @@ def test_a_live_frame_that_fails_is_one_warning_with_its_stamp(ros):
     # the live worker's items are (header, points); the handler once read item[0].header
     # and raised at shutdown, ending the worker thread
     node = ros.add(JointEstimationNode)
-    node._live_failed((header(T0 + 7 * DT), np.zeros((0, 3))), RuntimeError('publish failed'))
+    node.stages._live_failed((header(T0 + 7 * DT), np.zeros((0, 3))), RuntimeError('publish failed'))
     assert any(f'{(T0 + 7 * DT) * 1e-9:.3f} s failed: RuntimeError: publish failed' in line
                for line in ros.warnings('joint_estimation_node'))
 
@@ -696,14 +696,14 @@ def test_live_parameters_take_effect_and_the_others_are_read_only(ros):
     assert {m.scale.x for m in markers[14].markers if m.type == Marker.SPHERE} == {0.1}
     # the method's parameters: the next Alg. 2 runs with them
     assert _set(ros, 'joint_estimation_node', max_iterations=3)[0].successful
-    assert node.params.max_iterations == 3
+    assert node.stages.params.max_iterations == 3
     # read-only: refused, with the reason
     [result] = _set(ros, 'joint_estimation_node', live_frames='camera')
     assert not result.successful and 'read-only' in result.reason and 'live_frames' in result.reason
     assert node.live_frames == 'registered'
     # out of the documented range: refused by the descriptor
     [result] = _set(ros, 'joint_estimation_node', omega=2.0)
-    assert not result.successful and node.params.omega == 0.01
+    assert not result.successful and node.stages.params.omega == 0.01
     # the accumulator's window is live, its structure parameters read-only
     assert _set(ros, 'accumulator_node', window_size=5, sliding=True)[0].successful
     assert (accumulator.schedule.window_size, accumulator.schedule.sliding) == (5, True)
