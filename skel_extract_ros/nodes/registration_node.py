@@ -39,7 +39,8 @@ from std_srvs.srv import Trigger
 from ..codecs.depth_image import DepthDecodeError, depth_to_cloud
 from ..codecs.messages import cloud_message, stamp_ns
 from ..codecs.pointcloud import CloudDecodeError, decode_xyz
-from .common import LATCHED_QOS, SENSOR_QOS, STREAM_QOS, ThrottledLog, WorkingNode, declare_params, decode_or_warn, run_node
+from .common import (LATCHED_QOS, SENSOR_QOS, STREAM_QOS, ThrottledLog, WorkingNode, declare_params, decode_or_warn,
+                     run_node)
 from .diagnostics import OK, WARN, NodeDiagnostics
 from .registration_stages import RegistrationStages
 

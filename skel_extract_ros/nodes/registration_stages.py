@@ -259,7 +259,8 @@ class RegistrationStages:
             if self.registration_process.lowered:
                 self.registration_process.restart()     # learning the new skeleton comes first
         stamp, observed = stamp_ns(frame.header), frame.observed
-        if self.rest_pose is None and self.rest_pose_process.while_waiting(frame.segmentation.status != STATUS_NOBODY):
+        somebody = frame.segmentation.status != STATUS_NOBODY
+        if self.rest_pose is None and self.rest_pose_process.while_waiting(somebody):
             self.logger.info(f'nobody in view for {REST_POSE_IDLE_RELEASE_S:.0f} s: the rest pose process ends '
                              'until something moves')
         try:
