@@ -2,7 +2,7 @@
 frame by frame, with recapture of lost parts and unseen parts carried along."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -56,6 +56,15 @@ class NonRigidRegistration(GraphTerms, GraphMStep):
         self.translations = np.zeros((n_nodes, 3))
         self.points = rest_points.copy()
         self._prepare()
+        # coarse_to_fine: the coarser graph of the first pass, and how far the fastest node
+        # moved in the last registered frame (m; 0 before there is one)
+        self._coarse = None
+        self.last_step_ = 0.0
+        self.coarse_chosen_ = 0     # frames whose result came from the coarse start
+        if self.params.coarse_to_fine:
+            coarse = replace(self.params, coarse_to_fine=False, recapture=False,
+                             node_spacing=self.params.coarse_spacing_factor * spacing)
+            self._coarse = NonRigidRegistration(rest_points, coarse)
 
     @property
     def rest_points(self) -> np.ndarray:
@@ -66,6 +75,7 @@ class NonRigidRegistration(GraphTerms, GraphMStep):
         self.rotations[:] = np.eye(3)
         self.translations[:] = 0.0
         self.points = self.rest_points.copy()
+        self.last_step_ = 0.0
 
     # ----------------------------------------------------------------------------------
     def _e_step(self, observed: np.ndarray, points: np.ndarray, sigma2: float,
@@ -157,6 +167,36 @@ class NonRigidRegistration(GraphTerms, GraphMStep):
         retried.recaptured = len(found)
         return retried
 
+    def _em_from(self, observed: np.ndarray, view: 'ObservedView | None', start: tuple) -> '_EMState':
+        """EM (and recapture) from the node transforms `start` = (rotations, translations)."""
+        state = self._run_em(observed, view, start[0].copy(), start[1].copy())
+        if self.params.recapture and state.estep is not None:
+            state = self._recapture(observed, view, state)
+        return state
+
+    def _frame_energy(self, observed: np.ndarray, state: '_EMState') -> float:
+        """The objective of a frame's result at the common sigma2 initial_sigma2 (EM runs end
+        at different sigma2, so their own energies do not compare)."""
+        p = self.params
+        stats = gmm_posteriors(observed, state.points, p.initial_sigma2, p.omega, p.e_step_neighbours,
+                               p.truncation_sigmas)
+        return stats.nll + self.smoothness_penalty(state.rotations, state.translations, p.initial_sigma2)
+
+    def _coarse_start(self, observed: np.ndarray, start: tuple) -> tuple | None:
+        """coarse_to_fine: node transforms of this graph from a first pass of the coarse
+        graph, started where `start` puts the points and reaching as far as the fastest node
+        moved in the last frame; None if that pass fails."""
+        p, coarse = self.params, self._coarse
+        points = self._contributions(*start).sum(axis=1)
+        coarse.rotations, coarse.translations = coarse.transforms_onto(points)
+        coarse.points = points
+        reach = self.last_step_ / p.truncation_sigmas
+        coarse.params = replace(coarse.params, initial_sigma2=max(p.initial_sigma2, reach ** 2))
+        result = coarse.register_frame(observed)
+        if result.status != STATUS_OK:
+            return None
+        return self.transforms_onto(result.points)
+
     def _carry_unseen_parts(self, state: '_EMState', start: tuple) -> None:
         """Parts without data this frame (out of sight, or lost and not recaptured) move
         rigidly with the tracked nodes they hang on, from where EM started them (the
@@ -212,9 +252,16 @@ class NonRigidRegistration(GraphTerms, GraphMStep):
             else self.transforms_onto(start_points)
 
         view = ObservedView(observed) if p.visibility else None
-        state = self._run_em(observed, view, start[0].copy(), start[1].copy())
-        if p.recapture and state.estep is not None:
-            state = self._recapture(observed, view, state)
+        state = self._em_from(observed, view, start)
+        if self._coarse is not None:
+            coarse_start = self._coarse_start(observed, start)
+            if coarse_start is not None:
+                other = self._em_from(observed, view, coarse_start)
+                if other.estep is not None and np.isfinite(other.sigma2) and (
+                        state.estep is None or not np.isfinite(state.sigma2)
+                        or self._frame_energy(observed, other) < self._frame_energy(observed, state)):
+                    state = other
+                    self.coarse_chosen_ += 1
         if p.smoothness == 'robust' and state.estep is not None and np.isfinite(state.sigma2):
             self._carry_unseen_parts(state, start)
         rotations, translations, points, sigma2 = state.rotations, state.translations, state.points, state.sigma2
@@ -224,6 +271,7 @@ class NonRigidRegistration(GraphTerms, GraphMStep):
                 or not np.isfinite(points).all():
             return FrameResult(self.points.copy(), STATUS_DIVERGED, float(sigma2), iterations,
                                float(matched_fraction), energies)
+        self.last_step_ = float(np.max(np.linalg.norm(translations - self.translations, axis=1)))
         self.rotations, self.translations, self.points = rotations, translations, points
         return FrameResult(points.copy(), STATUS_OK, float(sigma2), iterations, float(matched_fraction), energies,
                            state.recaptured)

@@ -64,6 +64,12 @@ class RegistrationParams:
                                             'this share of their mass has diverged, a fraction', 0.0, 1.0)
     min_points: int = parameter(50, 'a preprocessed frame with fewer points is skipped as empty, points',
                                 1, 10_000_000)
+    coarse_to_fine: bool = parameter(False, 'each frame, EM also runs from the result of a first pass on a '
+                                     'coarser graph whose E-step reaches as far as the fastest node moved in the '
+                                     'last registered frame; the frame keeps the run with the lower objective at '
+                                     'initial_sigma2 (a prototype: off)')
+    coarse_spacing_factor: float = parameter(2.0, 'with coarse_to_fine, node spacing of the coarse graph = this x '
+                                             "the graph's, dimensionless", 1.0, 100.0)
 
     def __post_init__(self):
         validate(self)
