@@ -83,9 +83,10 @@ def subjects(only: list) -> list:
 
 
 def simulate_and_run(name: str, source_args: list, scene: str, frames: int, work: Path,
-                     variant: str | None = None) -> dict:
-    """Simulate the subject into a bag and `skel-extract run` it; `variant` (default the
-    scene) names the bag when source_args hold a seed or an input form."""
+                     variant: str | None = None, params: str | None = None) -> dict:
+    """Simulate the subject into a bag and `skel-extract run` it (with the parameter file
+    `params`, else the defaults); `variant` (default the scene) names the bag when
+    source_args hold a seed or an input form."""
     variant = variant or scene
     bag, out = work / f'{name}_{variant}', work / f'{name}_{variant}_out'
     shutil.rmtree(bag, ignore_errors=True)
@@ -95,7 +96,8 @@ def simulate_and_run(name: str, source_args: list, scene: str, frames: int, work
     if done.returncode != 0:
         raise RuntimeError(f'simulate {name}: {done.stderr.strip().splitlines()[-1]}')
     started = time.perf_counter()
-    done = subprocess.run([CLI, 'run', str(bag), '--out', str(out)], capture_output=True, text=True)
+    done = subprocess.run([CLI, 'run', str(bag), '--out', str(out)] + (['--params', params] if params else []),
+                          capture_output=True, text=True)
     record = {'wall_s': time.perf_counter() - started, 'returncode': done.returncode,
               'stdout': done.stdout, 'error': done.stderr.strip().splitlines()[-1] if done.returncode else ''}
     (work / f'{name}_{variant}_run.json').write_text(json.dumps(record))
@@ -296,6 +298,8 @@ def main() -> int:
     parser.add_argument('--json', default=None, help='write the rows as JSON')
     parser.add_argument('--seeds', default='0', help='comma-separated simulation noise seeds (stability)')
     parser.add_argument('--forms', default='cloud', help='input forms: cloud, depth (16UC1 depth images)')
+    parser.add_argument('--params', default=None, help='a parameter file for skel-extract run (a variant to '
+                                                       'compare with the defaults)')
     args = parser.parse_args()
     chosen = subjects([o for o in args.only.split(',') if o])
     if not chosen:
@@ -312,7 +316,8 @@ def main() -> int:
                 extra = (['--seed', seed] if seed != '0' else []) + (['--depth-image'] if form == 'depth' else [])
                 if not args.score_only:
                     started = time.perf_counter()
-                    record = simulate_and_run(name, source_args + extra, scene, args.frames, work, variant)
+                    record = simulate_and_run(name, source_args + extra, scene, args.frames, work, variant,
+                                              args.params)
                     print(f'{name} {variant}: run exit {record["returncode"]} in '
                           f'{time.perf_counter() - started:.0f} s {record["error"]}', file=sys.stderr, flush=True)
                 try:
