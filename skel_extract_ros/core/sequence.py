@@ -1,5 +1,6 @@
-"""Registration of a whole sequence: subject segmentation, preprocessing, rest pose, then
-Alg. 1 frame by frame.
+"""Registration of a whole sequence: the per-frame step of core.stream (subject
+segmentation, preprocessing, rest-pose gate, rest pose, Alg. 1) over every frame, as the
+registration node runs it on a stream.
 
     >>> registration = SequenceRegistration(RegistrationParams())
     >>> registered = registration.register(frames)      # iterable of (N_t, 3) -> (F, M, 3)
@@ -21,6 +22,7 @@ from .registration.params import FrameResult
 from .rest_pose import RestPoseParams
 from .segmentation import SegmentationParams
 from .stream import FrameRegistrar, SubjectFinder, split_layout
+
 
 @dataclass
 class StepTimes:
