@@ -129,3 +129,27 @@ def test_the_growth_schedule_learns_when_the_window_is_full_and_then_every_strid
     assert [sliding.due(n, True) for n in range(1, 5)] == [False, False, True, True]
     with pytest.raises(ValueError, match='window_size'):
         GrowthSchedule(window_size=1)
+
+
+def test_with_observed_points_the_ids_are_the_accumulators_and_alg2_runs_only_on_a_change():
+    """`run` grows the skeleton with the observed points (Alg. 2 in the same update); the
+    nodes grow it without them (the accumulator) and run Alg. 2 on each published, changed
+    structure (the joint node). Both key the joints alike, so the two give the same names;
+    and a window that changed nothing costs no Alg. 2."""
+    rest, first = three_part_chain(30, 'left')
+    _, again = three_part_chain(30, 'left', seed=5)
+    _, second = three_part_chain(30, 'right', seed=1)
+    again, second = again - again[0] + first[-1], second - second[0] + first[-1]
+    windows = [first, again, second]
+    params = StructureParams(n_clusters=20, max_key_frames=40)
+    nodes, run = SkeletonGrowth(rest, params), SkeletonGrowth(rest, params)
+    changed = []
+    for k, window in enumerate(windows):
+        stamps = np.arange(30 * k, 30 * (k + 1))
+        by_nodes = nodes.update(stamps, window)
+        by_run = run.update(stamps, window, [frame[::3] for frame in window])
+        assert list(by_run.joint_ids) == list(by_nodes.joint_ids)
+        assert by_run.changes == by_nodes.changes and by_run.changed == by_nodes.changed
+        assert (by_run.estimate is not None) == by_run.changed and (by_run.model is not None) == by_run.changed
+        changed.append(by_run.changed)
+    assert changed == [True, False, True] and by_run.structure.n_bones == 3

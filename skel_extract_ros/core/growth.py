@@ -68,8 +68,8 @@ class GrowthSchedule:
 
 @dataclass
 class GrowthUpdate:
-    """What one update did: structure (on the key frames), estimate (Alg. 2 on them, None
-    without observed points), joint_ids (B,) stable ids, key_stamps (K,) the key frames'
+    """What one update did: structure (on the key frames), estimate (Alg. 2 on them; None
+    without observed points, or when the skeleton did not change), joint_ids (B,) stable ids, key_stamps (K,) the key frames'
     stamps, changed: whether the skeleton differs from the previous update's, changes:
     {'added': [names], 'removed': [names], 'reparented': [names], 'moved': [names]};
     model: the learned skeleton (None without Alg. 2)."""
@@ -123,8 +123,10 @@ class SkeletonGrowth:
 
     rest: (M, 3) rest points (m). structure_params.max_key_frames: the most frames the model
     is learned from (bounds memory and the time of an update); .joint_match_fraction: joints
-    of two updates within this share of the subject size are the same joint. Updates given
-    the observed points also run Step 3 (Alg. 2) with joint_params.
+    of two updates within this share of the subject size are the same joint. Joint ids
+    follow the structure's joints (as the accumulator node keys them). Updates given the
+    observed points also run Step 3 (Alg. 2) with joint_params when the skeleton changed
+    (as the joint node, which gets only changed structures).
 
         >>> growth = SkeletonGrowth(rest)
         >>> update = growth.update(stamps, registered, observed)   # per window
@@ -189,13 +191,8 @@ class SkeletonGrowth:
         structure = extract_structure(self.rest, window, self.structure_params,
                                       None if self.last is None else self.last.structure.labels)
         self.seconds_ = {'structure': time.perf_counter() - started, 'joints': 0.0}
-        estimate = None
+        # joint ids and changes from the structure's joints, as the accumulator node keys them
         joints, parents = structure.joints, structure.parents
-        if all(o is not None for o in self.key_observed):
-            started = time.perf_counter()
-            estimate = JointEstimation(self.joint_params).fit(self.rest, window, self.key_observed, structure)
-            self.seconds_['joints'] = time.perf_counter() - started
-            joints, parents = estimate.joints, estimate.parents
         previous = dict(zip(self.ids.tolist(), zip(self.parent_ids.tolist(), self._current_positions())))
         members = np.arange(len(parents))[:, None] == structure.labels[None, :]        # (B, M) child bone points
         ids = self._assign_ids(joints, members, int(np.flatnonzero(parents < 0)[0]))
@@ -205,7 +202,14 @@ class SkeletonGrowth:
         self.known_positions[ids] = joints
         self.known_members[ids] = members
         changed = any(changes.values()) or self.last is None
-        model = None if estimate is None else estimate.model(self.rest, structure.labels, ids)
+        # Step 3 (Alg. 2) only for a skeleton that changed: the joint node runs it only on
+        # the structures the accumulator publishes, which are the changed ones
+        estimate = model = None
+        if changed and all(o is not None for o in self.key_observed):
+            started = time.perf_counter()
+            estimate = JointEstimation(self.joint_params).fit(self.rest, window, self.key_observed, structure)
+            self.seconds_['joints'] = time.perf_counter() - started
+            model = estimate.model(self.rest, structure.labels, ids)
         self.last = GrowthUpdate(structure, estimate, ids, self.key_stamps.copy(), changed, changes, model)
         return self.last
 
