@@ -46,7 +46,6 @@ class JointEstimationNode(WorkingNode):
         super().__init__('joint_estimation_node', **kwargs)
         params = declare_params(self, SECTION)
         own = params['node']
-        self.live_frames, self.provisional_skeleton = own.live_frames, own.provisional_skeleton
         self.log = ThrottledLog(self.get_logger())
         # description, joints, trajectory, confidence, markers (nodes/skeleton_output.py)
         self.output = SkeletonOutput(self, own.joint_diameter)
@@ -67,8 +66,15 @@ class JointEstimationNode(WorkingNode):
 
     def _apply_parameters(self, params: dict, _changed: set) -> None:
         """`ros2 param set` (the live parameters), see JointStages.apply."""
-        self.provisional_skeleton = params['node'].provisional_skeleton
         self.stages.apply(params['joints'], params['node'])
+
+    @property
+    def live_frames(self) -> str:
+        return self.stages.live_frames
+
+    @property
+    def provisional_skeleton(self) -> bool:
+        return self.stages.provisional_skeleton
 
     # -- inputs: decoded here, handed to the stages -------------------------------------------
     def _on_rest(self, msg: PointCloud2) -> None:

@@ -72,7 +72,7 @@ class RegistrationNode(WorkingNode):
         self.params, self.rest_params = params['registration'], params['rest_pose']
         method = (params['registration'], params['rest_pose'], params['preprocess'], params['segmentation'])
         own = params['node']
-        self.lossless, self.input = own.lossless, own.input
+        self.input = own.input
         self.log = ThrottledLog(self.get_logger())
         self.outputs = _Outputs(self)
         self.stages = RegistrationStages(method, own, self._decode, self.outputs, self.log,
@@ -184,7 +184,7 @@ class RegistrationNode(WorkingNode):
             'clouds_in': camera['submitted'], 'processed': stages.processed, 'skipped': skipped,
             'skipped_for_registration': registration['dropped'],
             'failed': camera['failed'] + registration['failed'], 'waiting': registration['waiting'],
-            'queue_size': stages.registration.capacity, 'lossless': self.lossless,
+            'queue_size': stages.registration.capacity, 'lossless': stages.settings.lossless,
             'registration_nice': stages.registration_process.nice,
             'registration_sched_idle': stages.registration_process.in_idle_class,
             'registered_from_live_pose': stages.registered_from_live_pose,
