@@ -68,10 +68,6 @@ class Harness:
         """Whether the executor still runs: a callback that raises stops it (and every node)."""
         return self._thread.is_alive()
 
-    def has_node(self, name: str) -> bool:
-        """A node under test is called `name`."""
-        return any(node.get_name() == name for node in self.nodes)
-
     def wait_matched(self, publisher, timeout=30.0):
         self.wait(lambda: publisher.get_subscription_count() >= 1, timeout, 'a subscription to match')
 

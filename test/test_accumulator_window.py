@@ -26,10 +26,9 @@ def publish_rest(ros, rest):
 
 
 def publish_frames(ros, frames, start):
-    """Registered + filtered clouds of frames start, start + 1, ... as the registration node
-    (filtered_points has a reader when a joint node runs)."""
+    """Registered + filtered clouds of frames start, start + 1, ... as the registration node."""
     publishers = [ros.publisher(t, PointCloud2, STREAM_QOS) for t in ('registered_points', 'filtered_points')]
-    for pub in publishers if ros.has_node('joint_estimation_node') else publishers[:1]:
+    for pub in publishers:
         ros.wait_matched(pub)
     for i, frame in enumerate(frames, start):
         for pub in publishers:
@@ -117,23 +116,24 @@ def structure_message(rest, registered, first):
     return String(data=json.dumps(structure_document(structure, T0, stamps, 'camera_depth_optical_frame')))
 
 
-def test_a_frame_resent_late_joins_the_window_in_stamp_order(ros):
-    """Frame 3's registered cloud comes after frame 9's (a fragmented cloud resent late by
-    reliable DDS): the window still holds frames 0-9 in order. Before, frame 3 was ignored
-    as not newer than the last frame, the window never filled and no structure came."""
+def test_a_pair_completed_late_joins_the_window_in_stamp_order(ros):
+    """Frame 3's filtered cloud comes after frame 9's (a fragmented cloud resent late): the
+    window still holds frames 0-9 in order. Before, frame 3 was ignored as not newer than
+    the last frame, the window never filled and no structure came."""
     rest, registered, _, _, _ = two_bone_sequence(n_frames=10)
     node = ros.add(AccumulatorNode, parameter_overrides=[Parameter('window_size', value=10),
                                                          Parameter('n_clusters', value=12)])
     structures = ros.listen('skeleton/structure', String, LATCHED_QOS)
     publish_rest(ros, rest)
-    publisher = ros.publisher('registered_points', PointCloud2, STREAM_QOS)
-    ros.wait_matched(publisher)
+    publishers = {t: ros.publisher(t, PointCloud2, STREAM_QOS) for t in ('registered_points', 'filtered_points')}
+    for pub in publishers.values():
+        ros.wait_matched(pub)
     for i, frame in enumerate(registered):
+        publishers['registered_points'].publish(cloud_message(frame, header(T0 + i * DT)))
         if i != 3:
-            publisher.publish(cloud_message(frame, header(T0 + i * DT)))
-    ros.wait(lambda: len(node.frames) == 9, what='the nine frames in order')
-    assert not structures
-    publisher.publish(cloud_message(registered[3], header(T0 + 3 * DT)))
+            publishers['filtered_points'].publish(cloud_message(frame, header(T0 + i * DT)))
+    ros.wait(lambda: len(node.frames) == 9, what='the nine complete pairs')
+    publishers['filtered_points'].publish(cloud_message(registered[3], header(T0 + 3 * DT)))
     ros.wait(lambda: len(structures) == 1, what='the structure of the full window')
     assert window_of(json.loads(structures[0].data)) == list(range(10))
 

@@ -311,11 +311,10 @@ def test_registration_starts_from_the_newest_posed_model_of_the_joint_node(ros, 
 
 
 def _publish_two_bone(ros, rest, frames, start=0):
-    """Stream registered + filtered clouds as the registration node would (filtered_points
-    has a reader when a joint node runs: the accumulator takes registered frames only)."""
+    """Stream registered + filtered clouds as the registration node would."""
     reg_pub = ros.publisher('registered_points', PointCloud2, STREAM_QOS)
     filt_pub = ros.publisher('filtered_points', PointCloud2, STREAM_QOS)
-    for pub in (reg_pub, filt_pub) if ros.has_node('joint_estimation_node') else (reg_pub,):
+    for pub in (reg_pub, filt_pub):
         ros.wait_matched(pub)
     for i, frame in enumerate(frames, start):
         h = header(T0 + i * DT)

@@ -1,7 +1,6 @@
 """accumulator_node: Step 2 on windows of registered frames, grown into one skeleton.
 
-Subscribes  registered_points (PointCloud2, reliable): every registered frame has had its
-            filtered_points cloud published before it, which the joint node keeps
+Subscribes  registered_points, filtered_points (PointCloud2, reliable), paired by stamp
             rest_points (PointCloud2, transient local): a new rest pose starts a new skeleton
 Publishes   skeleton/structure (std_msgs/String JSON, transient local): bones, bone tree,
             per-point labels, stable joint ids, what changed, and the stamps of the key
@@ -29,7 +28,7 @@ from std_srvs.srv import Trigger
 
 from ..core.growth import SkeletonGrowth
 from ..core.structure import StructureError
-from .common import (LATCHED_QOS, STREAM_QOS, ThrottledLog, WorkingNode, declare_params,
+from .common import (LATCHED_QOS, STREAM_QOS, StampPairer, ThrottledLog, WorkingNode, declare_params,
                      decode_registered_or_warn, decode_rest_or_warn, on_live_parameters, release_freed_memory,
                      run_node)
 from ..codecs.messages import stamp_ns, structure_document
@@ -53,6 +52,7 @@ class AccumulatorNode(WorkingNode):
         self.growth = None               # the skeleton of the current rest pose
         self.frame_id = ''
         self.frames = collections.OrderedDict()      # stamp ns -> (M, 3) float32, paired only
+        self.pairer = StampPairer()      # registered points with their filtered cloud, by stamp
         self._since_extraction = 0
         self._extracted_once = False
         self.extractor = Worker(lambda job: self._extract(*job), 'structure', capacity=1,
@@ -63,6 +63,7 @@ class AccumulatorNode(WorkingNode):
         self.published = 0
         self.create_subscription(PointCloud2, 'rest_points', self._on_rest, LATCHED_QOS)
         self.create_subscription(PointCloud2, 'registered_points', self._on_registered, STREAM_QOS)
+        self.create_subscription(PointCloud2, 'filtered_points', self._on_filtered, STREAM_QOS)
         self.create_service(Trigger, '~/extract', self._on_extract)
         self.diagnostics = NodeDiagnostics(self, self._diagnostics)
         mode = f'sliding, every {self.schedule.stride} frames' if self.schedule.sliding else 'once'
@@ -90,13 +91,20 @@ class AccumulatorNode(WorkingNode):
         self.get_logger().info(f'new rest pose ({len(rest)} points); window and skeleton restarted'
                                + (f', {len(old)} frames of the previous rest pose dropped' if old else ''))
 
+    def _on_filtered(self, msg: PointCloud2) -> None:
+        pair = self.pairer.add(1, stamp_ns(msg.header), True)
+        if pair is not None:
+            self._add(stamp_ns(msg.header), pair[0])
+
     def _on_registered(self, msg: PointCloud2) -> None:
         self.registered_rate.tick()
         stamp = stamp_ns(msg.header)
         points = decode_registered_or_warn(msg, self.log, self.rest)
         if points is None:
             return
-        self._add(stamp, points)
+        pair = self.pairer.add(0, stamp, points)
+        if pair is not None:
+            self._add(stamp, pair[0])
 
     def _add(self, stamp: int, points: np.ndarray) -> None:
         with self._lock:
@@ -110,8 +118,8 @@ class AccumulatorNode(WorkingNode):
             newest = next(reversed(self.frames), None)
             self.frames[stamp] = points
             if newest is not None and stamp < newest:
-                # a fragmented cloud can be resent seconds late (reliable DDS): the window
-                # stays in stamp order, nothing lost
+                # a pair completes when its later half arrives, and a fragmented cloud can be
+                # resent seconds late (reliable DDS): the window stays in stamp order, nothing lost
                 self.frames = collections.OrderedDict(sorted(self.frames.items()))
             while len(self.frames) > self.schedule.window_size:
                 self.frames.popitem(last=False)

@@ -188,9 +188,9 @@ class RegistrationNode(WorkingNode):
             'registration_nice': stages.registration_process.nice,
             'registration_sched_idle': stages.registration_process.in_idle_class,
             'registered_from_live_pose': stages.registered_from_live_pose,
-            # readers matched to each output (DDS drops what a volatile writer sends before)
-            'registered_readers': self.outputs.registered_pub.get_subscription_count(),
-            'filtered_readers': self.outputs.filtered_pub.get_subscription_count(),
+            # readers matched to both outputs (DDS drops what a volatile writer sends before)
+            'outputs_matched': min(self.outputs.registered_pub.get_subscription_count(),
+                                   self.outputs.filtered_pub.get_subscription_count()),
             'rest_points': 0 if stages.rest_pose is None else len(stages.rest_pose.points)}
 
     def stop_work(self) -> None:

@@ -41,7 +41,7 @@ __all__ = ['ReplayError', 'looped_stamp', 'replay', 'use_large_message_profile']
 
 # Every link between the nodes must be up before the first cloud, not only ours: a volatile
 # stream loses what is published before its subscriber is discovered. Readers per topic.
-INTERNAL_READERS = {'rest_points': 3, 'registered_points': 3, 'filtered_points': 2, 'skeleton/structure': 2}
+INTERNAL_READERS = {'rest_points': 3, 'registered_points': 3, 'filtered_points': 3, 'skeleton/structure': 2}
 
 
 class ReplayError(RuntimeError):
@@ -206,9 +206,7 @@ class _Replay:
                     and (recorder.info_publisher is None or recorder.info_publisher.get_subscription_count() >= 1)
                     and all(node.count_publishers(t) >= 1 for t, _, _ in OUTPUT_TOPICS)
                     and all(node.count_subscribers(t) >= n for t, n in INTERNAL_READERS.items())
-                    and int(received.registration.get('registered_readers', 0))
-                    >= INTERNAL_READERS['registered_points']
-                    and int(received.registration.get('filtered_readers', 0)) >= INTERNAL_READERS['filtered_points'])
+                    and int(received.registration.get('outputs_matched', 0)) >= 3)
         if not self._wait(connected, 120.0):
             raise ReplayError('the nodes did not come up within 120 s (see DIR/logs)')
 
