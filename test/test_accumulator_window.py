@@ -283,6 +283,14 @@ def test_the_structure_message_carries_the_rigid_fits_alg_2_starts_from():
     moved = np.einsum('fbij,mj->fbmi', parsed['rotations'], rest) + parsed['translations'][:, :, None]
     own = moved[np.arange(8)[:, None], structure.labels[None, :], np.arange(len(rest))[None, :]]
     assert np.median(np.linalg.norm(own - registered, axis=2)) < 0.01
+    # and the anchors' spread, which the pivot evidence of Alg. 2's joints needs
+    assert np.array_equal(parsed['anchor_spread'], structure.anchor_spread)
+    spread = document.pop('anchor_spread')
+    assert parse_structure(json.dumps(document))['anchor_spread'] is None      # not sent: not known
+    document['anchor_spread'] = spread[:-1]
+    with pytest.raises(ValueError, match='anchor_spread'):
+        parse_structure(json.dumps(document))
+    document['anchor_spread'] = spread
     document['rotations'] = document['rotations'][:-1]          # one key frame short
     with pytest.raises(ValueError, match='malformed'):
         parse_structure(json.dumps(document))

@@ -423,6 +423,9 @@ def _check_trajectory(ros, described, joints, rest, registered):
     ros.wait(lambda: len(trajectory) == len(confidence) == len(joints), what='a trajectory point per frame')
     assert described['version'] == 1
     assert len(described['confidence']) == 2 and min(described['confidence']) > 0.8
+    # the joint's pivot was fixed by the motion (the two-bone case bends in every plane);
+    # the root joint, a bone centre, has none
+    assert described['pivot']['fixed'] == [None if p < 0 else True for p in described['parents']]
     assert stamps_of(trajectory) == stamps_of(joints)
     positions = np.array([[[p.position.x, p.position.y, p.position.z] for p in m.poses] for m in joints])
     for k, message in enumerate(trajectory):

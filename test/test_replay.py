@@ -44,6 +44,11 @@ def test_replay_sample_bag_records_every_topic_and_matches_run(tmp_path, sample_
     confidence = np.array([f['confidence'] for f in offline['frames']])
     assert confidence.shape == (59, len(offline['joint_names'])) and 0.0 <= confidence.min() <= confidence.max() <= 1.0
     np.testing.assert_allclose([f['confidence'] for f in replayed['frames']], confidence, atol=5e-3)
+    # and each joint's pivot evidence (skeleton/description's pivot, core.joint_centres)
+    assert replayed['pivot']['fixed'] == offline['pivot']['fixed']
+    assert sum(bool(f) for f in offline['pivot']['fixed']) >= 1
+    np.testing.assert_allclose([r or 0.0 for r in replayed['pivot']['residual_m']],
+                               [r or 0.0 for r in offline['pivot']['residual_m']], atol=1e-4)
     # run keeps every input frame (frame 0, before the rest pose, NaN); the nodes publish
     # only registered frames
     offline_points = np.load(run_out / 'registered.npz')

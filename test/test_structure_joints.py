@@ -9,7 +9,7 @@ from scipy.spatial.transform import Rotation
 from skel_extract_ros.core.articulated import BoneBlocks
 from skel_extract_ros.core.joints import JointEstimation, JointParams, simplex_least_squares
 from skel_extract_ros.core.rigid import fit_rigid_segments
-from skel_extract_ros.core.joint_centres import boundary_centroids, medial_anchors, solve_joints
+from skel_extract_ros.core.joint_centres import boundary_centroids, medial_anchors, pivot_evidence, solve_joints
 from skel_extract_ros.core.structure import (StructureError, StructureParams, _neighbour_graph, _residuals,
                                              extract_structure, split_evidence)
 from two_bone import two_bone_sequence
@@ -252,8 +252,9 @@ def test_surface_anchors_are_the_paper_boundary_centroids():
     surface = extract_structure(rest, registered, StructureParams(anchor_depth='surface'))
     spacing = np.median(cKDTree(rest).query(rest, k=2)[0][:, 1])
     adjacency = _neighbour_graph(rest, StructureParams().neighbour_radius_factor * spacing)
-    expected = boundary_centroids(surface.labels, surface.parents, adjacency, rest)
+    expected, spread = boundary_centroids(surface.labels, surface.parents, adjacency, rest)
     assert np.allclose(surface.boundary_centroids, expected)
+    assert np.allclose(surface.anchor_spread, spread) and (spread > 0).all()
     with pytest.raises(ValueError, match='anchor_depth'):
         StructureParams(anchor_depth='deep')
 
@@ -329,3 +330,82 @@ def test_split_evidence_grows_with_the_bend_and_falls_with_the_noise():
     assert evidence(20.0, 0.002) > 2.0 * evidence(6.0, 0.002)
     assert evidence(6.0, 0.002) > 2.0 * evidence(6.0, 0.006)
     assert evidence(0.0, 0.002) < StructureParams().motion_noise_factor
+
+
+# ---- the pivot rule (E_Joint's solve) and its evidence, on a ball joint, a hinge seen along
+# its axis and a rigid part cut in two
+
+def _hinge_sequence(n_frames=40, noise=0.001, seed=0):
+    """two_bone_sequence's cylinders (joint at the origin), bone 1 turning about the z axis
+    only (the camera's viewing direction) while both sway; registered with i.i.d. noise."""
+    rng = np.random.default_rng(seed)
+    rest, _, labels, _, _ = two_bone_sequence()
+    frames = []
+    for f in range(n_frames):
+        phase = 2 * np.pi * f / n_frames
+        base = Rotation.from_rotvec([0.1 * np.sin(phase), 0.15 * np.cos(phase), 0.05]).as_matrix()
+        bend = Rotation.from_rotvec([0.0, 0.0, 0.9 * np.sin(phase)]).as_matrix()
+        moved = rest @ base.T
+        moved[labels == 1] = (rest[labels == 1] @ bend.T) @ base.T
+        frames.append(moved + np.array([0.02 * np.sin(phase), 0.0, 2.0]) + rng.normal(scale=noise, size=moved.shape))
+    return rest, np.array(frames), labels
+
+
+def _pivot(rest, registered, labels, anchor, spread=0.04, eta=1.0):
+    rotations, translations = fit_rigid_segments(rest, registered, labels, 2)
+    parents = np.array([-1, 0])
+    anchors = np.array([rest[labels == 0].mean(axis=0), anchor])
+    joints = solve_joints(rotations, translations, parents, anchors, eta)
+    return joints[1], pivot_evidence(rotations, translations, parents, joints, np.array([0.1, spread]))
+
+
+def test_a_ball_joint_is_found_by_its_motion_and_fixed_in_every_direction():
+    rest, registered, labels, joint, _ = two_bone_sequence(noise=0.002)
+    # the anchor is 3 cm off in every direction: the motion, not the anchor, places the joint
+    found, evidence = _pivot(rest, registered, labels, anchor=np.array([0.03, -0.03, 0.03]))
+    assert np.linalg.norm(found - joint) < 0.006
+    assert evidence.fixed_directions[1] == 3 and evidence.fixed[1]
+    assert evidence.confidence[1] > 0.95
+    assert evidence.residual_m[1] < 0.006
+    # the root joint is a bone centre, not a pivot
+    assert not evidence.fixed[0] and np.isnan(evidence.confidence[0]) and np.isnan(evidence.residual_m[0])
+
+
+def test_a_hinge_seen_along_its_axis_is_fixed_across_it_and_anchored_along_it():
+    rest, registered, labels = _hinge_sequence()
+    anchor = np.array([0.015, -0.015, 0.03])       # the anchor's depth 3 cm off, as a surface centroid's is
+    found, evidence = _pivot(rest, registered, labels, anchor)
+    # across the axis the motion puts the joint where the body bends ...
+    assert np.linalg.norm(found[:2]) < 0.003
+    # ... along it nothing but the anchor can
+    assert abs(found[2] - anchor[2]) < 0.003
+    assert evidence.fixed_directions[1] == 2 and evidence.fixed[1]
+    assert 0.6 < evidence.confidence[1] < 0.7
+
+
+def test_a_rigid_part_cut_in_two_has_no_fixed_pivot():
+    for noise in (0.001, 0.004):
+        rest, registered, truth = _cylinder_pair(40, bend_deg=0.0, noise=noise, smooth=noise)
+        _, evidence = _pivot(rest, registered, truth, anchor=np.zeros(3))
+        assert evidence.fixed_directions[1] <= 1 and not evidence.fixed[1]
+        assert evidence.confidence[1] < 0.4
+        # the same cylinders bent by 20 degrees about a moving axis: a ball joint again
+        rest, registered, truth = _cylinder_pair(40, bend_deg=20.0, noise=noise, smooth=noise)
+        _, evidence = _pivot(rest, registered, truth, anchor=np.zeros(3))
+        assert evidence.fixed_directions[1] == 3 and evidence.confidence[1] > 0.95
+
+
+def test_the_learned_skeleton_carries_the_pivot_evidence_of_its_joints():
+    rest, registered, labels, joint, _ = two_bone_sequence(noise=0.001)
+    structure = extract_structure(rest, registered, StructureParams(n_clusters=12))
+    estimate = JointEstimation().fit(rest, registered, list(registered), structure)
+    child = int(np.flatnonzero(estimate.parents >= 0)[0])
+    assert estimate.pivot.fixed[child] and estimate.pivot.fixed_directions[child] == 3
+    # read from the unconstrained fits at Alg. 2's joint, not from Alg. 2's own transforms
+    expected = structure.pivot_evidence(estimate.joints)
+    np.testing.assert_allclose(estimate.pivot.residual_m, expected.residual_m)
+    assert estimate.pivot.residual_m[child] > 1e-4
+    model = estimate.model(rest, structure.labels)
+    document = model.to_json(np.zeros(1), estimate.joint_trajectories()[:1], 'camera')
+    assert document['pivot']['fixed'][child] is True
+    assert document['pivot']['fixed'][structure.root] is None

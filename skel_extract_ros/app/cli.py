@@ -112,6 +112,7 @@ def _cmd_run(args) -> int:
     from ..codecs.bag import BagError, cloud_topics, read_cloud_frames, select_cloud_topic
     from ..config import ParamsError, load_params_file, pipeline_params
     from ..core.pipeline import SkeletonPipeline
+    from ..core.skeleton_model import pivot_document
     from ..core.structure import StructureError
     from .outputs import write_registered, write_skeleton
     from .progress import progress_bar
@@ -193,11 +194,12 @@ def _cmd_run(args) -> int:
     write_skeleton(out, model.joint_names, model.parents, model.rest_joints, frame_id, stamps[frames],
                    result.joint_positions, result.joint_confidence, model.rest_points, model.labels,
                    registered=dict(enumerate(registered[frames])), observed=dict(enumerate(result.observed)),
-                   scene={row: scenes[i] for row, i in enumerate(frames)})
+                   scene={row: scenes[i] for row, i in enumerate(frames)}, pivot=pivot_document(model.pivot))
     total = time.perf_counter() - started
     per_frame = np.array(registration.times_.per_frame_registration) * 1000.0
     seconds = result.seconds
-    print(f'skeleton: {result.model.n_joints} joints, {result.structure.n_bones} bones '
+    pivots = '' if model.pivot is None else f' ({int(model.pivot.fixed.sum())} pivots fixed by the motion)'
+    print(f'skeleton: {result.model.n_joints} joints{pivots}, {result.structure.n_bones} bones '
           f'-> {out / "skeleton.json"}, {out / "skeleton.bvh"}, {out / "skeleton.png"}')
     print(f'time: segmentation {seconds["segmentation"]:.1f} s | '
           f'preprocess {seconds["preprocess"]:.1f} s | rest pose {seconds["rest_pose"]:.1f} s | '

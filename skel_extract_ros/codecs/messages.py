@@ -16,7 +16,7 @@ from std_msgs.msg import ColorRGBA, Header
 from visualization_msgs.msg import Marker, MarkerArray
 
 from .bag import stamp_to_ns
-from ..core.skeleton_model import SkeletonModel
+from ..core.skeleton_model import SkeletonModel, pivot_document
 from ..core.structure import SkeletalStructure
 from .pointcloud import pointcloud2
 
@@ -54,6 +54,7 @@ def structure_document(structure: SkeletalStructure, rest_stamp_ns: int, window_
         'labels': [int(label) for label in structure.labels],
         'joints': structure.joints.tolist(),
         'boundary_centroids': structure.boundary_centroids.tolist(),
+        'anchor_spread': None if structure.anchor_spread is None else structure.anchor_spread.tolist(),
         'rotations': structure.rotations.reshape(len(structure.rotations), structure.n_bones, 9).tolist(),
         'translations': structure.translations.tolist(),
         'joint_ids': [int(i) for i in joint_ids],
@@ -84,6 +85,12 @@ def parse_structure(text: str) -> dict:
             raise ValueError('joints / boundary_centroids do not match the bone count')
         document['rotations'] = np.asarray(document['rotations'], dtype=np.float64).reshape(F, B, 3, 3)
         document['translations'] = np.asarray(document['translations'], dtype=np.float64).reshape(F, B, 3)
+        if document.get('anchor_spread') is not None:
+            document['anchor_spread'] = np.asarray(document['anchor_spread'], dtype=np.float64).reshape(-1)
+            if len(document['anchor_spread']) != B:
+                raise ValueError('anchor_spread does not match the bone count')
+        else:
+            document['anchor_spread'] = None
         document['joint_ids'] = np.asarray(document.get('joint_ids', np.arange(B)), dtype=np.int64)
         if len(document['joint_ids']) != B or len(set(document['joint_ids'].tolist())) != B:
             raise ValueError('joint_ids must be one distinct id per bone')
@@ -103,15 +110,17 @@ def description_document(model: SkeletonModel, frame_id: str, window_stamps_ns, 
     (stable across updates), parents, rest_positions, frame, the frames it was learned on,
     what changed since the previous description (joint names added / removed / reparented
     / moved), whether it is provisional (Step 2's skeleton, tracked while Alg. 2 runs;
-    the next description refines it under the same joint names) and the per-joint
+    the next description refines it under the same joint names), the per-joint
     confidence (J,) in [0, 1] of the frames it was learned on (core/confidence.py; None:
-    not given)."""
+    not given) and how far the motion fixed each joint's pivot (the model's pivot evidence,
+    core.skeleton_model.pivot_document; None: not known)."""
     return {'version': int(version), 'frame_id': frame_id, 'joint_names': model.joint_names,
             'parents': [int(p) for p in model.parents],
             'rest_positions': np.round(model.rest_joints, 6).tolist(),
             'window_stamps_ns': [int(s) for s in window_stamps_ns],
             'changes': changes or {}, 'provisional': bool(provisional),
-            'confidence': None if confidence is None else np.round(np.asarray(confidence, dtype=float), 4).tolist()}
+            'confidence': None if confidence is None else np.round(np.asarray(confidence, dtype=float), 4).tolist(),
+            'pivot': pivot_document(model.pivot)}
 
 
 def pose_array(positions: np.ndarray, header: Header, quaternions: np.ndarray | None = None) -> PoseArray:

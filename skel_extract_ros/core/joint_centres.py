@@ -1,6 +1,7 @@
 """Where the joints are: E_Joint's solve for the joint locations c_jk (paper Sec. 6.3, the
 joint term of Eq. 12a), their anchors c~ (the boundary between two bones, moved to the
-bone's cross-section centre), and each joint carried through the frames by its two bones.
+bone's cross-section centre), each joint carried through the frames by its two bones, and
+how far the motion fixed each joint (`pivot_evidence`).
 
 Deviation (anchor_depth='medial', the default): one depth camera sees only the front of
 each limb, so the boundary centroid c~ lies on the visible surface, about a limb radius in
@@ -11,6 +12,8 @@ cross-section centre, fitted to the visible half of that cross-section (see ther
 paper's plain centroid is anchor_depth='surface'.
 """
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -46,23 +49,92 @@ def solve_joints(rotations, translations, parents, anchors, eta: float) -> np.nd
     return joints
 
 
-def boundary_centroids(labels, parents, adjacency, rest) -> np.ndarray:
-    """(B, 3) centroid of the points of bone b or of its parent that touch the other one
-    (the root gets its own centre)."""
+def boundary_centroids(labels, parents, adjacency, rest) -> tuple:
+    """The anchors c~ (B, 3): the centroid of the points of bone b or of its parent that
+    touch the other one (the root gets its own centre), and their spread (B,) m: the RMS
+    distance of those points from it (the root: of its bone's points), how far from c~ the
+    boundary alone leaves the joint."""
     B = len(parents)
     summer = segment_matrix(labels, B)
     touches = (adjacency @ summer.T).tocsr()                                    # (M, B) neighbours per bone
-    centres = (summer @ rest) / np.maximum(np.asarray(summer.sum(axis=1)).ravel(), 1)[:, None]
+    counts = np.maximum(np.asarray(summer.sum(axis=1)).ravel(), 1)
+    centres = (summer @ rest) / counts[:, None]
+    spread = np.sqrt(np.maximum((summer @ np.sum(rest ** 2, axis=1)) / counts - np.sum(centres ** 2, axis=1), 0.0))
     result = centres.copy()
     for b in np.flatnonzero(parents >= 0):  # loop over bones, not points
         p = parents[b]
         on_boundary = ((labels == b) & (touches[:, p].toarray().ravel() > 0)) | \
                       ((labels == p) & (touches[:, b].toarray().ravel() > 0))
         if on_boundary.any():
-            result[b] = rest[on_boundary].mean(axis=0)
+            boundary = rest[on_boundary]
+            result[b] = boundary.mean(axis=0)
+            spread[b] = np.sqrt(np.mean(np.sum((boundary - result[b]) ** 2, axis=1)))
         else:
             result[b] = 0.5 * (centres[b] + centres[p])
-    return result
+            spread[b] = 0.5 * np.linalg.norm(centres[b] - centres[p])
+    return result, spread
+
+
+@dataclass
+class PivotEvidence:
+    """How far the two bones' own motion fixed each joint's pivot, per joint (B,); the
+    root's rows are NaN / 0 (its joint is the root bone's centre, not a pivot).
+
+    residual_m: RMS over frames of the pivot gap |(R_p^t - R_b^t) c + T_p^t - T_b^t| at the
+    joint c under the bones' unconstrained rigid fits (E_Joint's kinematic term, Eq. 12a),
+    m; fixed_directions: in how many of the 3 directions the motion pins c down better than
+    the anchor does (3: a ball joint that turned in several planes; 2: a hinge, free along
+    its axis; 0: a cut through a part that did not bend); confidence in [0, 1]: the share
+    of the anchor's uncertainty the motion removed, averaged over the 3 directions (a hinge
+    at most 2/3). `fixed`: at least 2 directions.
+    """
+
+    residual_m: np.ndarray
+    fixed_directions: np.ndarray
+    confidence: np.ndarray
+
+    @property
+    def fixed(self) -> np.ndarray:
+        """(B,) bool: the motion fixed the pivot across the joint's axis (a ball joint or a
+        hinge); False for the root."""
+        return self.fixed_directions >= 2
+
+
+def pivot_evidence(rotations, translations, parents, joints, anchor_spread) -> PivotEvidence:
+    """The pivot evidence of joints (B, 3) under rigid fits rotations (F, B, 3, 3) and
+    translations (F, B, 3), with anchor spreads (B,) m (boundary_centroids).
+
+    E_Joint's kinematic term is a least-squares estimate of c: with D_t = R_p^t - R_b^t and
+    A = sum_t D_t^T D_t (eigenvalues lambda_i), the motion alone fixes c along eigenvector i
+    to a variance s_n^2 / lambda_i, s_n^2 the per-axis pivot noise (residual_m^2 / 3,
+    measured on the sequence); the anchor fixes it to s_a^2 (anchor_spread^2). Independent
+    rotation noise of each fit also makes A: about 2 F theta_n^2 per direction with
+    theta_n = s_n / s_a, the pivot noise over the lever it acts on; that much is taken off
+    each lambda_i first, so a part cut in two, whose D_t are noise alone, fixes nothing.
+    Direction i is fixed when the rest, lambda_i', exceeds s_n^2 / s_a^2, and the
+    confidence is the mean of lambda_i' / (lambda_i' + s_n^2 / s_a^2).
+    """
+    B = len(parents)
+    residual = np.full(B, np.nan)
+    fixed = np.zeros(B, dtype=np.int64)
+    confidence = np.full(B, np.nan)
+    child = np.flatnonzero(parents >= 0)
+    if len(child) == 0:
+        return PivotEvidence(residual, fixed, confidence)
+    F = len(rotations)
+    parent = parents[child]
+    D = rotations[:, parent] - rotations[:, child]                               # (F, E, 3, 3)
+    gap = np.einsum('feij,ej->fei', D, joints[child]) + translations[:, parent] - translations[:, child]
+    residual[child] = np.sqrt(np.mean(np.sum(gap ** 2, axis=2), axis=0))
+    spread = np.maximum(np.asarray(anchor_spread, dtype=np.float64)[child], 1e-9)
+    # a perfect fit (synthetic data) still needs a noise scale: a micrometre per metre of spread
+    noise2 = np.maximum(residual[child] ** 2 / 3.0, (1e-6 * spread) ** 2)
+    eta = noise2 / spread ** 2                                                   # s_n^2 / s_a^2
+    lam = np.linalg.eigvalsh(np.einsum('feji,fejk->eik', D, D))                  # (E, 3)
+    informative = np.maximum(lam - 2.0 * F * eta[:, None], 0.0)
+    fixed[child] = np.sum(informative > eta[:, None], axis=1)
+    confidence[child] = np.mean(informative / (informative + eta[:, None]), axis=1)
+    return PivotEvidence(residual, fixed, confidence)
 
 
 def medial_anchors(labels, parents, rest, anchors, camera_location, min_section_points: int = 60) -> np.ndarray:

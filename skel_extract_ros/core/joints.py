@@ -37,7 +37,7 @@ from .gmm import CandidateCache
 from .parallel import parallel_map
 from .parameters import INF, parameter, validate
 from .point_sets import median_spacing
-from .joint_centres import joint_trajectories, solve_joints
+from .joint_centres import PivotEvidence, joint_trajectories, solve_joints
 from .skeleton_model import SkeletonModel
 from .structure import SkeletalStructure
 
@@ -78,7 +78,9 @@ class JointEstimate:
 
     influences: (M, 4) bone indices and weights: (M, 4) LBS weights (rows sum to 1);
     rotations (F, B, 3, 3), translations (F, B, 3); joints (B, 3) rest-frame joint of each
-    bone with its parent (root: its centre); parents (B,); tau (F,) m^2.
+    bone with its parent (root: its centre); parents (B,); tau (F,) m^2; pivot: how far the
+    bones' own motion (Step 2's unconstrained rigid fits) fixed these joints (None when the
+    structure does not say, see SkeletalStructure.pivot_evidence).
     """
 
     influences: np.ndarray
@@ -89,6 +91,7 @@ class JointEstimate:
     parents: np.ndarray
     tau: np.ndarray
     energies: list = field(default_factory=list)
+    pivot: PivotEvidence | None = None
 
     def joint_trajectories(self) -> np.ndarray:
         """(F, B, 3) joint positions per frame (metres)."""
@@ -101,7 +104,8 @@ class JointEstimate:
     def model(self, rest: np.ndarray, labels: np.ndarray, joint_ids: np.ndarray | None = None) -> SkeletonModel:
         """The learned skeleton: these joints and LBS weights on rest (M, 3) with Step 2's
         labels (M,), the joints named by joint_ids (B,) (None: 0..B-1)."""
-        return SkeletonModel(rest, labels, self.parents, self.joints, self.influences, self.weights, joint_ids)
+        return SkeletonModel(rest, labels, self.parents, self.joints, self.influences, self.weights, joint_ids,
+                             self.pivot)
 
 
 _SUPPORTS = {k: [s for r in range(1, k + 1) for s in itertools.combinations(range(k), r)] for k in range(1, 5)}
@@ -215,7 +219,10 @@ class JointEstimation:
             tau = np.array([max(s.squared_residual(x) / (3.0 * max(s.Np, 1e-12)), p.min_tau) if s else t
                             for s, x, t in zip(stats, deformed, tau)])
             alpha *= p.alpha_growth
-        return JointEstimate(influences, weights, rotations, translations, joints, parents, tau, energies)
+        # the evidence is read from the unconstrained fits: Alg. 2's transforms meet at the
+        # joints by construction (alpha grows without bound), so their gap says nothing
+        return JointEstimate(influences, weights, rotations, translations, joints, parents, tau, energies,
+                             structure.pivot_evidence(joints))
 
     # ------------------------------------------------------------------------------------
     @staticmethod

@@ -9,13 +9,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .joint_centres import PivotEvidence
+
 
 @dataclass
 class SkeletonModel:
     """rest_points (M, 3), labels (M,), parents (B,), rest_joints (B, 3), all metres in the
     rest frame (the cloud frame of the rest-pose frame); LBS influences/weights (M, k);
     joint_ids (B,): stable ids that name the joints across updates of a growing skeleton
-    (core.growth; None: 0..B-1)."""
+    (core.growth; None: 0..B-1); pivot: how far the motion it was learned on fixed each
+    joint (None: not known)."""
 
     rest_points: np.ndarray
     labels: np.ndarray
@@ -24,6 +27,7 @@ class SkeletonModel:
     influences: np.ndarray
     weights: np.ndarray
     joint_ids: np.ndarray | None = None
+    pivot: PivotEvidence | None = None
 
     @property
     def n_joints(self) -> int:
@@ -42,15 +46,34 @@ class SkeletonModel:
         """The skeleton.json document (docs/contract.md): stamps (F,) s, positions (F, J, 3)
         m, confidence (F, J) in [0, 1] or None."""
         return skeleton_document(self.joint_names, self.parents, self.rest_joints, stamps, positions, frame_id,
-                                 confidence)
+                                 confidence, pivot_document(self.pivot))
+
+
+def pivot_document(pivot: PivotEvidence | None) -> dict | None:
+    """The `pivot` block of skeleton.json and skeleton/description: per joint `fixed` (the
+    motion fixed its pivot across its axis: a ball joint or a hinge), `fixed_directions`
+    (0-3), `confidence` ([0, 1], the share of the anchor's uncertainty the motion removed)
+    and `residual_m` (the RMS pivot gap, m); null for the root joint (a bone centre, not a
+    pivot). None without evidence."""
+    if pivot is None:
+        return None
+    root = ~np.isfinite(pivot.residual_m)
+
+    def per_joint(values, convert):
+        return [None if r else convert(v) for v, r in zip(values, root)]
+    return {'fixed': per_joint(pivot.fixed, bool),
+            'fixed_directions': per_joint(pivot.fixed_directions, int),
+            'confidence': per_joint(pivot.confidence, lambda v: round(float(v), 4)),
+            'residual_m': per_joint(pivot.residual_m, lambda v: round(float(v), 6))}
 
 
 def skeleton_document(joint_names, parents, rest_positions, stamps, positions, frame_id: str,
-                      confidence=None) -> dict:
+                      confidence=None, pivot: dict | None = None) -> dict:
     """skeleton.json: names (J,), parents (J,), rest_positions (J, 3) m, stamps (F,) s,
-    positions (F, J, 3) m in the input frame (non-finite values become null), and per frame
+    positions (F, J, 3) m in the input frame (non-finite values become null), per frame
     the joints' confidence (F, J) in [0, 1] (core.confidence) when given (a frame whose
-    confidence is unknown: None, left out)."""
+    confidence is unknown: None, left out), and the joints' pivot evidence (pivot_document;
+    None: null)."""
     positions = np.asarray(positions, dtype=np.float64)
     frames = [{'stamp': float(stamp),
                'positions': [[None if not np.isfinite(v) else round(float(v), 6) for v in joint]
@@ -64,5 +87,6 @@ def skeleton_document(joint_names, parents, rest_positions, stamps, positions, f
         'joint_names': list(joint_names),
         'parents': [int(p) for p in parents],
         'rest_positions': np.round(np.asarray(rest_positions, dtype=np.float64), 6).tolist(),
+        'pivot': pivot,
         'frames': frames,
     }

@@ -56,7 +56,7 @@ from scipy.cluster.vq import kmeans2
 from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
 from scipy.spatial import cKDTree
 
-from .joint_centres import boundary_centroids, joint_trajectories, medial_anchors, solve_joints
+from .joint_centres import PivotEvidence, boundary_centroids, joint_trajectories, medial_anchors, pivot_evidence, solve_joints
 from .parameters import INF, parameter, validate
 from .point_sets import median_spacing
 from .rigid import fit_rigid_segments, segment_matrix
@@ -115,7 +115,9 @@ class SkeletalStructure:
     joints: (B, 3) rest-frame joint between each bone and its parent (for the root: its
     centre); boundary_centroids: (B, 3) the anchor c~ of each joint (root: its centre),
     moved to the medial depth unless anchor_depth is 'surface'; split_evidence: (B,) the
-    evidence for each joint (module docstring; inf for the root).
+    evidence for each joint (module docstring; inf for the root); anchor_spread: (B,) m, how
+    far from its anchor the bone boundary alone leaves each joint (joint_centres.
+    boundary_centroids; None: not known, e.g. a structure from an older message).
     """
 
     labels: np.ndarray
@@ -125,6 +127,7 @@ class SkeletalStructure:
     joints: np.ndarray
     boundary_centroids: np.ndarray
     split_evidence: np.ndarray | None = None
+    anchor_spread: np.ndarray | None = None
 
     @property
     def n_bones(self) -> int:
@@ -137,6 +140,14 @@ class SkeletalStructure:
     def joint_trajectories(self) -> np.ndarray:
         """(F, B, 3) joint positions per frame (metres)."""
         return joint_trajectories(self.rotations, self.translations, self.joints, self.parents)
+
+    def pivot_evidence(self, joints: np.ndarray | None = None) -> PivotEvidence | None:
+        """How far these bones' rigid fits fixed joints (B, 3) (default: Step 2's), see
+        joint_centres.pivot_evidence; None without anchor_spread."""
+        if self.anchor_spread is None:
+            return None
+        return pivot_evidence(self.rotations, self.translations, self.parents,
+                              self.joints if joints is None else joints, self.anchor_spread)
 
 
 def _neighbour_graph(rest: np.ndarray, radius: float) -> sparse.csr_matrix:
@@ -237,12 +248,12 @@ def split_evidence(residual: np.ndarray, labels: np.ndarray, parents: np.ndarray
     return _own_motion(residual, labels, parents, n_frames) / noise
 
 
-def _anchors(labels, parents, adjacency, rest, params: 'StructureParams') -> np.ndarray:
-    """(B, 3) the joint anchors c~ as the parameters ask for."""
-    anchors = boundary_centroids(labels, parents, adjacency, rest)
+def _anchors(labels, parents, adjacency, rest, params: 'StructureParams') -> tuple:
+    """The joint anchors c~ (B, 3) as the parameters ask for, and their spread (B,) m."""
+    anchors, spread = boundary_centroids(labels, parents, adjacency, rest)
     if params.anchor_depth == 'medial':
         anchors = medial_anchors(labels, parents, rest, anchors, params.camera_location)
-    return anchors
+    return anchors, spread
 
 
 def extract_structure(rest: np.ndarray, registered: np.ndarray, params: StructureParams | None = None,
@@ -308,7 +319,7 @@ def extract_structure(rest: np.ndarray, registered: np.ndarray, params: Structur
                     remove = int(b)
                     break
         if remove is None:
-            anchors = _anchors(labels, parents, adjacency, rest, params)
+            anchors, _ = _anchors(labels, parents, adjacency, rest, params)
             joints = solve_joints(rotations, translations, parents, anchors, params.eta)
             for b in np.flatnonzero(parents >= 0):
                 p = parents[b]
@@ -327,6 +338,6 @@ def extract_structure(rest: np.ndarray, registered: np.ndarray, params: Structur
     if B < 2:
         raise StructureError('the motion is too small to separate any bones: every part '
                              'of the subject moves rigidly together')
-    anchors = _anchors(labels, parents, adjacency, rest, params)
+    anchors, spread = _anchors(labels, parents, adjacency, rest, params)
     joints = solve_joints(rotations, translations, parents, anchors, params.eta)
-    return SkeletalStructure(labels, parents, rotations, translations, joints, anchors, evidence)
+    return SkeletalStructure(labels, parents, rotations, translations, joints, anchors, evidence, spread)

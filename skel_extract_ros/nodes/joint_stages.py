@@ -183,14 +183,14 @@ class JointStages:
         found = [document['window_stamps_ns'].index(stamp) for stamp in stamps]
         rotations, translations = document['rotations'][found], document['translations'][found]
         structure = SkeletalStructure(labels, parents, rotations, translations, document['joints'],
-                                      document['boundary_centroids'])
+                                      document['boundary_centroids'], anchor_spread=document['anchor_spread'])
         if self.provisional_skeleton and self.live_frames == 'camera':
             # Step 2's skeleton, each point on its bone, is tracked while Alg. 2 runs (seconds),
             # so joints come before Alg. 2's; Alg. 2's model then replaces it under the same
             # joint names. Not with live_frames
             # registered: lossless replay publishes Alg. 2's joints for the window, as run does.
             step2 = SkeletonModel(rest, labels, parents, structure.joints, labels[:, None],
-                                  np.ones((len(rest), 1)), document['joint_ids'])
+                                  np.ones((len(rest), 1)), document['joint_ids'], structure.pivot_evidence())
             self._serve(step2, document, stamps, frames, (rotations, translations), started, provisional=True)
         estimate = JointEstimation(self.params).fit(rest, registered, observed, structure)
         model = estimate.model(rest, labels, document['joint_ids'])

@@ -33,7 +33,8 @@ def _write_files(received: Received, out: Path) -> dict:
                    np.stack([received.joints[s] for s in answered]), [received.confidence.get(s) for s in answered],
                    received.rest, np.asarray(structure['labels']),
                    registered={row: received.registered[s] for row, s in enumerate(answered) if s in received.registered},
-                   observed={row: received.filtered[s] for row, s in enumerate(answered) if s in received.filtered})
+                   observed={row: received.filtered[s] for row, s in enumerate(answered) if s in received.filtered},
+                   pivot=description.get('pivot'))
     return {'n_frames': len(stamps_ns), 'n_joints': len(description['joint_names']),
             'n_frames_with_joints': len(answered)}
 
