@@ -21,7 +21,9 @@ frames: every frame without joints is a miss). Absent data is skipped.
 them (the stability table). Printed: one row per subject and scene (and variant); the median of the headline figures on the tuning
 half (TUNING: choices are made there) and on the check half; each anatomical joint over
 the rows where it bends or travels (found, and its error split into the offset along the
-camera ray, across it, and what is left once the offset is removed).
+camera ray, across it, and what is left once the offset is removed); the joints whose
+pivot the motion fixed (skeleton.json's `pivot`) against the others, and how many of each
+matched a true joint.
 
 `--work DIR` keeps the bags and run outputs (default: a temporary directory); with
 `--score-only` nothing is simulated or run again, the outputs in DIR are scored.
@@ -169,11 +171,36 @@ def score(name: str, scene: str, work: Path) -> dict:
         row.update({k: report.get(k) for k in JOINT_KEYS})
         row['missed_articulated'] = report.get('missed_articulated', [])
         row['per_joint'] = report['per_joint']
+        row['pivots'] = _pivots(skeleton, report['per_joint'])
     elif gt.joints.shape[1]:
         # No skeleton is no joint found and no frame answered.
         row.update({'n_predicted': 0, 'recall': 0.0, 'articulated_recall': 0.0, 'moving_recall': 0.0,
                     'tracking_skill': 0.0, 'frame_coverage': 0.0})
     return row
+
+
+def _pivots(skeleton: Path, per_joint: list) -> list:
+    """Per found joint but the root: [whether its pivot was fixed by the motion (skeleton.json's
+    `pivot`), whether it matched a true joint, whether that one bends]."""
+    document = json.loads(skeleton.read_text())
+    if not document.get('pivot'):
+        return []
+    matched = {e['predicted']: e for e in per_joint if e.get('predicted')}
+    return [[bool(fixed), name in matched, bool(name in matched and matched[name]['articulated'])]
+            for name, fixed in zip(document['joint_names'], document['pivot']['fixed']) if fixed is not None]
+
+
+def pivot_table(rows: list) -> str:
+    """Per half, the joints whose pivot the motion fixed against the others: how many, and
+    the share of them that matched a true joint, and a bending one."""
+    lines = ['| half | pivot | joints | matched a true joint | matched a bending joint |', '|' + '---|' * 5]
+    for name in ('tuning', 'check'):
+        entries = [p for r in rows if r['half'] == name for p in r.get('pivots') or []]
+        for fixed in (True, False):
+            chosen = [p for p in entries if p[0] == fixed]
+            share = (lambda k: f'{np.mean([p[k] for p in chosen]):.2f}') if chosen else (lambda k: '-')
+            lines.append(f'| {name} | {"fixed" if fixed else "not fixed"} | {len(chosen)} | {share(1)} | {share(2)} |')
+    return '\n'.join(lines)
 
 
 def _fmt(value, digits=2, scale=1.0) -> str:
@@ -329,6 +356,8 @@ def main() -> int:
     print(summary_table(rows))
     print()
     print(per_joint_table(rows))
+    print()
+    print(pivot_table(rows))
     print()
     if len(rows) > len({(r['subject'], r['base_scene']) for r in rows}):
         print(stability_table(rows))
