@@ -2,9 +2,9 @@ r"""Per-joint confidence in [0, 1]: how far the data of a frame supports a publi
 
 The one place that defines it is `joint_confidence`; the nodes publish what it returns
 (skeleton/confidence, the markers' colours and labels; docs/contract.md) and nothing else
-computes a confidence. A better measure (e.g. from the residual of each joint's pivot,
-Eq. 10's constraint) replaces the body of `joint_confidence` or `bone_confidence` and keeps
-their signatures.
+computes a per-frame confidence. How far the motion fixed each joint's pivot is a property
+of the learned skeleton, not of a frame: it is published beside, in the description's and
+skeleton.json's `pivot` (core.joint_centres.pivot_evidence), and not folded in here.
 
 The measure here is the live fit's residual of each bone's points, which every path that
 publishes joints has at hand:
