@@ -157,10 +157,11 @@ def test_without_points_the_positions_still_round_trip_and_the_twist_follows_the
 def test_sample_run_writes_a_bvh_that_reproduces_skeleton_json(sample_run):
     """`skel-extract run` on the sample bag: skeleton.bvh has skeleton.json's joints and
     frames; read back with bvhio (and with the simulator's BVH loader) its joints are within
-    8 mm of skeleton.json's (measured: 5.3 mm at most, 1.2 mm median with 15 joints and Alg. 2
-    at 10 iterations; 3.1 / 0.7 mm at 20 iterations; 2.1 / 0.6 mm with 7 joints: the BVH's
-    bones keep their rest lengths, the estimated joints' distances vary by a few mm per
-    bone, more with fewer iterations (a weaker joint term), which adds up along a chain)."""
+    8 mm of skeleton.json's (measured: 6.0 mm at most, 2.4 mm median with 18 joints and Alg. 2
+    at 10 iterations; 5.3 / 1.2 mm with 15 joints; 3.1 / 0.7 mm at 20 iterations; 2.1 / 0.6 mm
+    with 7 joints: the BVH's bones keep their rest lengths, the estimated joints' distances
+    vary by a few mm per bone, more with fewer iterations (a weaker joint term), which adds
+    up along a chain)."""
     from skel_extract_ros.sim.bvh import load_bvh
 
     done, out = sample_run
@@ -177,7 +178,7 @@ def test_sample_run_writes_a_bvh_that_reproduces_skeleton_json(sample_run):
     for b, name in enumerate(names):
         assert {c.Name for c in joints[name].Children} == {names[c] for c in range(len(names)) if parents[c] == b}
     error = np.linalg.norm(_read_positions(out / 'skeleton.bvh', names) - positions, axis=2)
-    assert error.max() < 8e-3 and np.median(error) < 2e-3, (error.max(), np.median(error))
+    assert error.max() < 8e-3 and np.median(error) < 3.5e-3, (error.max(), np.median(error))
     # the simulator's loader takes it as metres and gets the same joints
     clip = load_bvh(out / 'skeleton.bvh')
     assert clip.unit_scale == 1.0 and clip.n_frames == 59

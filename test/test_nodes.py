@@ -712,4 +712,4 @@ def test_live_parameters_take_effect_and_the_others_are_read_only(ros):
     assert (accumulator.schedule.window_size, accumulator.schedule.sliding) == (5, True)
     [result] = _set(ros, 'accumulator_node', n_clusters=5)
     assert not result.successful and 'read-only' in result.reason
-    assert accumulator.params.n_clusters == 30
+    assert accumulator.params.n_clusters == StructureParams().n_clusters

@@ -56,7 +56,8 @@ from scipy.cluster.vq import kmeans2
 from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
 from scipy.spatial import cKDTree
 
-from .joint_centres import PivotEvidence, boundary_centroids, joint_trajectories, medial_anchors, pivot_evidence, solve_joints
+from .joint_centres import (PivotEvidence, boundary_centroids, joint_trajectories, medial_anchors, pivot_evidence,
+                             solve_joints)
 from .parameters import INF, parameter, validate
 from .point_sets import median_spacing
 from .rigid import fit_rigid_segments, segment_matrix
@@ -71,7 +72,9 @@ class StructureParams:
     """Parameters of the skeletal structure extraction (the refinement thresholds are
     fractions of the points or of the subject size: the module docstring)."""
 
-    n_clusters: int = parameter(30, 'initial K-means clusters (deliberately more than the bones)', 2, 10_000)
+    n_clusters: int = parameter(60, 'initial K-means clusters (deliberately more than the bones: each true '
+                                'boundary needs a cluster boundary near it before the evidence merges the rest)',
+                                2, 10_000)
     cluster_on: str = parameter('trajectories', "K-means features: trajectories (each point's whole registered "
                                 'path) or rest (rest positions)', choices=('trajectories', 'rest'))
     n_rounds: int = parameter(10, 'rounds of rigid fit / relabel / local continuity (paper: 10)', 0, 1000)
