@@ -29,6 +29,15 @@ def joint_trajectories(rotations, translations, joints, parents) -> np.ndarray:
     return 0.5 * (own + by_parent)
 
 
+def relative_motion(rotations, translations, parents) -> tuple:
+    """Each non-root bone b against its parent p, the terms of E_Joint's kinematic part
+    |D_t c + dT_t|^2: child (E,) the bones b, D (F, E, 3, 3) = R_p^t - R_b^t and
+    dT (F, E, 3) = T_p^t - T_b^t."""
+    child = np.flatnonzero(parents >= 0)
+    parent = parents[child]
+    return child, rotations[:, parent] - rotations[:, child], translations[:, parent] - translations[:, child]
+
+
 def solve_joints(rotations, translations, parents, anchors, eta: float) -> np.ndarray:
     """(B, 3) rest-frame joints minimising E_Joint (Eq. 12a's joint term) for each bone and
     its parent, with the bone transforms fixed: setting its gradient in c to zero gives
@@ -37,12 +46,9 @@ def solve_joints(rotations, translations, parents, anchors, eta: float) -> np.nd
     Root rows return their anchor.
     """
     joints = anchors.copy()
-    child = np.flatnonzero(parents >= 0)
+    child, D, dT = relative_motion(rotations, translations, parents)
     if len(child) == 0:
         return joints
-    parent = parents[child]
-    D = rotations[:, parent] - rotations[:, child]                               # (F, E, 3, 3)
-    dT = translations[:, parent] - translations[:, child]                        # (F, E, 3)
     A = eta * np.eye(3) + np.einsum('feji,fejk->eik', D, D)
     b = eta * anchors[child] - np.einsum('feji,fej->ei', D, dT)
     joints[child] = np.linalg.solve(A, b[..., None])[..., 0]
@@ -118,13 +124,11 @@ def pivot_evidence(rotations, translations, parents, joints, anchor_spread) -> P
     residual = np.full(B, np.nan)
     fixed = np.zeros(B, dtype=np.int64)
     confidence = np.full(B, np.nan)
-    child = np.flatnonzero(parents >= 0)
+    child, D, dT = relative_motion(rotations, translations, parents)
     if len(child) == 0:
         return PivotEvidence(residual, fixed, confidence)
     F = len(rotations)
-    parent = parents[child]
-    D = rotations[:, parent] - rotations[:, child]                               # (F, E, 3, 3)
-    gap = np.einsum('feij,ej->fei', D, joints[child]) + translations[:, parent] - translations[:, child]
+    gap = np.einsum('feij,ej->fei', D, joints[child]) + dT
     residual[child] = np.sqrt(np.mean(np.sum(gap ** 2, axis=2), axis=0))
     spread = np.maximum(np.asarray(anchor_spread, dtype=np.float64)[child], 1e-9)
     # a perfect fit (synthetic data) still needs a noise scale: a micrometre per metre of spread
