@@ -1,5 +1,6 @@
 """The truncated E-step (core.gmm) against the dense GMM posteriors of Eq. (3) / (11)."""
 import numpy as np
+import pytest
 
 from skel_extract_ros.core.gmm import CandidateCache, gmm_posteriors, nearest_centroids
 
@@ -93,3 +94,32 @@ def test_candidate_cache_queries_again_only_after_a_move_past_the_spacing_or_a_w
     assert (unbounded.candidates_for(centroids) < len(centroids)).all()
     unbounded.posteriors(centroids, 100.0 * sigma2, 0.01)
     assert unbounded.queries == 1
+
+
+def test_balanced_e_step_pulls_a_slid_chain_out_along_its_stranded_observations():
+    """A chain of centroids 1 cm apart that slid back along its data: it covers 0-20 cm of
+    observations that reach 26 cm (sigma 1.5 cm). Under Eq. 3 the last centroid takes the
+    stranded observations alone (mass 10 against a median of 2) and is the only one pulled
+    out (its target 2.7 cm ahead, the third from the end 0.2 cm; measured). Capped at 1.2 x
+    the median, that mass goes to the centroids behind it: each of the last six is pulled
+    further out, the chain's end as a whole. A centroid without data keeps none, and no
+    observation's mass is lost."""
+    chain = np.stack([np.arange(21) * 0.01, np.zeros(21), np.zeros(21)], axis=1)
+    hidden = np.array([[1.0, 1.0, 1.0]])
+    centroids = np.vstack([chain, hidden])
+    observed = np.stack([np.arange(53) * 0.005, np.zeros(53), np.zeros(53)], axis=1)
+    sigma2 = 0.015 ** 2
+    eq3 = gmm_posteriors(observed, centroids, sigma2, 0.01)
+    balanced = gmm_posteriors(observed, centroids, sigma2, 0.01, mass_cap=1.2)
+    end = slice(15, 21)
+    pull_eq3 = eq3.targets()[end, 0] - chain[end, 0]
+    pull_balanced = balanced.targets()[end, 0] - chain[end, 0]
+    assert (pull_balanced > pull_eq3 + 1e-3).all(), (pull_eq3, pull_balanced)
+    assert eq3.P1[20] > 4 * np.median(eq3.P1[:21]) and balanced.P1[20] < 0.6 * eq3.P1[20]
+    assert eq3.P1[21] == balanced.P1[21] == 0.0
+    assert balanced.Np == pytest.approx(eq3.Np, rel=1e-3)
+    # the likelihood is the model's, whatever the balance
+    assert balanced.nll == eq3.nll
+    # mass_cap 0 is Eq. 3 itself
+    same = gmm_posteriors(observed, centroids, sigma2, 0.01, mass_cap=0.0)
+    assert np.array_equal(same.P1, eq3.P1) and np.array_equal(same.Px, eq3.Px)

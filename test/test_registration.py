@@ -117,14 +117,15 @@ def test_every_m_step_block_lowers_the_m_step_energy(arm_frames, arm_rest, m_ste
 
 
 def test_exact_em_energy_never_increases(arm_frames):
-    """With the exact E-step (all centroids, no radius) EM is monotone on a frame pair.
+    """With the exact E-step of Eq. 3 (all centroids, no radius, no mass cap) EM is monotone
+    on a frame pair.
     With the paper's smoothness: the robust one is weighted by 1 / sigma2, which changes
     between iterations, so its objective is not one fixed function (module docstring)."""
     seq, frames = arm_frames
     rest = RestPose.from_points(frames[0], seed=0).points[::8]           # 250 centroids
     params = RegistrationParams(e_step_neighbours=len(rest), truncation_sigmas=np.inf,
                                 tolerance=0.0, max_iterations=15, min_sigma2=1e-12,
-                                smoothness='paper', recapture=False)
+                                smoothness='paper', recapture=False, mass_cap=0.0)
     reg = NonRigidRegistration(rest, params)
     result = reg.register_frame(frames[8][::4])
     energies = np.array(result.energies)
@@ -309,6 +310,10 @@ def test_parameter_validation():
         RegistrationParams(m_step='per_node')                 # the paper's scheme, robust smoothness
     with pytest.raises(ValueError, match='edge_strain_scale'):
         RegistrationParams(edge_strain_scale=0.0)
+    with pytest.raises(ValueError, match='mass_cap'):
+        RegistrationParams(mass_cap=0.5)                      # below the median itself
+    with pytest.raises(ValueError, match='mass_cap'):
+        RegistrationParams(mass_cap=-1.0)
     with pytest.raises(ValueError, match='rest points'):
         NonRigidRegistration(np.zeros((3, 3)))
 

@@ -10,6 +10,21 @@ Each observation keeps only its `n_neighbours` nearest centroids within
 `truncation_sigmas` * sigma (k-d tree over the centroids), so no N x M matrix is formed;
 what the M-steps need are the sufficient statistics below. `CandidateCache` keeps those
 neighbour lists across the iterations of one EM run while the centroids move little.
+
+Balanced E-step (`mass_cap`, a deviation from Eq. 3 for the registration). Eq. 3 normalises
+each observation over the centroids, never each centroid over the observations. When a
+featureless limb has slid along itself (the hand's centroids on the forearm's observations,
+the hand's own observations beyond them), only the chain's last centroid is within reach of
+most of the stranded observations: it takes them all and is pulled alone, while the
+centroids behind it stay put and the graph holds it back. With `mass_cap` > 0, each of
+three passes scales down the kernel of every centroid whose posterior mass sum_i p_mi is
+above mass_cap times the median mass of the centroids with data, to that bound, then
+normalises the observations' rows again (a Sinkhorn-like balance, on the centroid side
+only capped, never raised: a centroid hidden from the camera rightly has no data). An
+observation shared by the over-full centroid and the ones behind it then goes more to
+those, so the chain's end is pulled out along the data as a whole. The rows give part of
+the mass back each time, so the bound is approached, not reached. The likelihood (nll)
+stays Eq. 1's.
 """
 from __future__ import annotations
 
@@ -68,11 +83,12 @@ def _query(observed, centroids, n_neighbours, radius):
 
 def gmm_posteriors(observed: np.ndarray, centroids: np.ndarray, sigma2: float, omega: float,
                    n_neighbours: int = 8, truncation_sigmas: float = 4.0,
-                   candidates: np.ndarray | None = None) -> GMMStatistics:
+                   candidates: np.ndarray | None = None, mass_cap: float = 0.0) -> GMMStatistics:
     """E-step: observed (N, 3), centroids (M, 3), sigma2 (m^2) -> GMMStatistics.
 
     candidates: (N, K) centroid indices from `nearest_centroids` to use instead of a new
     query (M = none); the posteriors are exact over them, with the truncation radius applied.
+    mass_cap: 0 for Eq. 3 as written, else the balanced E-step (module docstring).
     """
     M, N = len(centroids), len(observed)
     radius = truncation_sigmas * np.sqrt(sigma2)
@@ -90,17 +106,47 @@ def gmm_posteriors(observed: np.ndarray, centroids: np.ndarray, sigma2: float, o
     gauss = np.exp(d2 * (-0.5 / sigma2)) * found
     row_sum = gauss.sum(axis=1)
     c = (2.0 * np.pi * sigma2) ** 1.5 * omega * M / ((1.0 - omega) * N)
-    # with omega = 0 an observation out of every centroid's reach has 0 / 0: it has no mass
-    denominator = row_sum + c
-    posteriors = gauss / np.where(denominator > 0, denominator, 1.0)[:, None]
     flat = np.where(found, idx, M).ravel()
-    P1 = np.bincount(flat, weights=posteriors.ravel(), minlength=M + 1)[:M]
+    kernel = gauss if mass_cap <= 0 else _capped_kernel(gauss, flat, c, M, mass_cap)
+    posteriors, P1 = _normalised(kernel, flat, c, M)
     Px = np.stack([np.bincount(flat, weights=(posteriors * observed[:, axis:axis + 1]).ravel(),
                                minlength=M + 1)[:M] for axis in range(3)], axis=1)
     likelihood = (1.0 - omega) / M * (2.0 * np.pi * sigma2) ** -1.5 * row_sum + omega / N
     nll = float(-np.sum(np.log(likelihood[likelihood > 0])))
     weighted_sq = float(posteriors.sum(axis=1) @ np.einsum('ni,ni->n', observed, observed))
     return GMMStatistics(P1, Px, float(P1.sum()), nll, weighted_sq)
+
+
+def _normalised(kernel: np.ndarray, flat: np.ndarray, c: float, M: int) -> tuple:
+    """Eq. 3's row normalisation of kernel (N, K) -> (posteriors (N, K), P1 (M,))."""
+    denominator = kernel.sum(axis=1) + c
+    # with omega = 0 an observation out of every centroid's reach has 0 / 0: it has no mass
+    posteriors = kernel / np.where(denominator > 0, denominator, 1.0)[:, None]
+    return posteriors, np.bincount(flat, weights=posteriors.ravel(), minlength=M + 1)[:M]
+
+
+# passes of the capped normalisation (module docstring); each costs one more normalisation
+# of the (N, K) posteriors
+_CAP_PASSES = 3
+# a centroid with less posterior mass than this has no data (hidden, or off the subject)
+_HAS_DATA = 1e-3
+
+
+def _capped_kernel(kernel: np.ndarray, flat: np.ndarray, c: float, M: int, mass_cap: float) -> np.ndarray:
+    """The balanced E-step (module docstring): kernel (N, K) with the columns of centroids
+    over mass_cap x the median mass of the centroids with data scaled down, in _CAP_PASSES
+    passes; flat (N * K,) the centroid of each entry (M = none)."""
+    for _ in range(_CAP_PASSES):
+        _, P1 = _normalised(kernel, flat, c, M)
+        with_data = P1[P1 > _HAS_DATA]
+        if len(with_data) == 0:
+            break
+        limit = mass_cap * np.median(with_data)
+        scale = np.minimum(1.0, limit / np.maximum(P1, 1e-300))
+        if scale.min() >= 1.0:
+            break
+        kernel = kernel * np.append(scale, 0.0)[flat].reshape(kernel.shape)
+    return kernel
 
 
 class CandidateCache:
@@ -140,8 +186,8 @@ class CandidateCache:
         return self.candidates
 
     def posteriors(self, centroids: np.ndarray, sigma2: float, omega: float,
-                   truncation_sigmas: float = 4.0) -> GMMStatistics:
+                   truncation_sigmas: float = 4.0, mass_cap: float = 0.0) -> GMMStatistics:
         """gmm_posteriors of the cached observations over these candidates."""
         candidates = self.candidates_for(centroids, truncation_sigmas * np.sqrt(sigma2))
         return gmm_posteriors(self.observed, centroids, sigma2, omega, self.n_neighbours, truncation_sigmas,
-                              candidates=candidates)
+                              candidates=candidates, mass_cap=mass_cap)

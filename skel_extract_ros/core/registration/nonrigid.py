@@ -80,17 +80,19 @@ class NonRigidRegistration(GraphTerms, GraphMStep):
     # ----------------------------------------------------------------------------------
     def _e_step(self, observed: np.ndarray, points: np.ndarray, sigma2: float,
                 view: 'ObservedView | None' = None, cache: CandidateCache | None = None) -> GMMStatistics:
-        """Eq. (3) over the centroids the camera can see (all without a view); without a
-        view, over the candidates of `cache` (the frame's CandidateCache)."""
+        """Eq. (3), balanced by mass_cap (gmm module docstring), over the centroids the camera
+        can see (all without a view); without a view, over the candidates of `cache` (the
+        frame's CandidateCache)."""
         p = self.params
         if view is None:
             if cache is not None:
-                return cache.posteriors(points, sigma2, p.omega, p.truncation_sigmas)
-            return gmm_posteriors(observed, points, sigma2, p.omega, p.e_step_neighbours, p.truncation_sigmas)
+                return cache.posteriors(points, sigma2, p.omega, p.truncation_sigmas, p.mass_cap)
+            return gmm_posteriors(observed, points, sigma2, p.omega, p.e_step_neighbours, p.truncation_sigmas,
+                                  mass_cap=p.mass_cap)
         visible = view.visible(points, p.truncation_sigmas * np.sqrt(sigma2))
         self.last_visible_ = visible
         stats = gmm_posteriors(observed, points[visible], sigma2, p.omega, p.e_step_neighbours,
-                               p.truncation_sigmas)
+                               p.truncation_sigmas, mass_cap=p.mass_cap)
         P1 = np.zeros(len(points))
         Px = np.zeros((len(points), 3))
         P1[visible], Px[visible] = stats.P1, stats.Px

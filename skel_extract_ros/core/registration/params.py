@@ -56,6 +56,11 @@ class RegistrationParams:
                                        'with truncation_sigmas inf: exact EM)', 1, 1_000_000)
     truncation_sigmas: float = parameter(4.0, 'truncated E-step: neighbour radius in GMM standard deviations',
                                          1.0, INF)
+    mass_cap: float = parameter(0.0, 'balanced E-step: a model point whose posterior mass passes this many '
+                                'times the median of the model points with data has its share scaled down '
+                                '(three passes), so the observations beyond a limb that slid back along itself '
+                                'pull its end as a whole, not its last point alone; 0 = Eq. 3 as written (the '
+                                'default), else at least 1', 0.0, INF)
     min_sigma2: float = parameter(1e-6, 'lower bound of the GMM variance (a perfect fit cannot collapse the '
                                   'Gaussians), m^2', above=0.0, high=INF)
     max_sigma2: float = parameter(1e-2, 'a frame whose variance ends above this has diverged (the last good '
@@ -73,6 +78,8 @@ class RegistrationParams:
 
     def __post_init__(self):
         validate(self)
+        if 0.0 < self.mass_cap < 1.0:
+            raise ValueError(f'mass_cap must be 0 (off) or at least 1 (the median itself), got {self.mass_cap}')
         if self.m_step == 'per_node' and self.smoothness != 'paper':
             raise ValueError("m_step 'per_node' is the paper's scheme and needs smoothness 'paper'")
 
