@@ -17,6 +17,7 @@ anchor_depth=surface) instead of the default medial anchors. Prints a Markdown t
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
@@ -27,6 +28,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from skel_extract_ros.core.growth import GrowthSchedule  # noqa: E402
 from skel_extract_ros.core.joints import JointEstimation  # noqa: E402
 from skel_extract_ros.core.pipeline import SkeletonPipeline  # noqa: E402
 from skel_extract_ros.core.joint_centres import joint_trajectories, solve_joints  # noqa: E402
@@ -77,6 +79,11 @@ def score(positions, parents, stamps, gt):
     return evaluate_joints(pred, gt, start_stamp=float(stamps[0]), end_stamp=float(stamps[-1]))
 
 
+def _cell(value) -> str:
+    """A score for the table: '-' where the subject has none (no bending or moving joint)."""
+    return '-' if value is None or not np.isfinite(value) else f'{value:.2f}'
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument('--frames', type=int, default=90)
@@ -85,53 +92,65 @@ def main() -> int:
     parser.add_argument('--no-dem-bones', action='store_true')
     parser.add_argument('--no-surface', action='store_true',
                         help="skip Steps 2-3 with the paper's surface anchors (anchor_depth=surface)")
+    parser.add_argument('--n-clusters', type=int, default=None,
+                        help="Step 2's K-means clusters (default: StructureParams' default)")
     parser.add_argument('--json', default=None)
     args = parser.parse_args()
+    structure_params = StructureParams() if args.n_clusters is None else StructureParams(n_clusters=args.n_clusters)
     rows = []
-    print('| subject | true joints | method | joints found | mean_error_m | normalized_error_m | recall | seconds |')
-    print('|---|---|---|---|---|---|---|---|')
+    print('| subject | true joints | method | joints found | mean_error_m | normalized_error_m | recall | '
+          'precision | artic. recall | moving recall | tracking skill | seconds |')
+    print('|---|---|---|---|---|---|---|---|---|---|---|---|')
     for subject in args.subjects.split(','):
         seq = generate_sequence(subject, args.frames, seed=args.seed, progress=False)
         g = seq.ground_truth
         gt = GroundTruth.from_arrays(g)
-        pipeline = SkeletonPipeline()
+        # learned once, on every registered frame (a window as long as the sequence)
+        pipeline = SkeletonPipeline(structure=structure_params, schedule=GrowthSchedule(window_size=args.frames))
         started = time.perf_counter()
         # organized clouds, as a camera gives them: the subject segmentation (on by
         # default) then finds the subject from the second frame on
         registered = pipeline.register(seq.clouds)
         register_seconds = time.perf_counter() - started
         result = pipeline.extract(registered)
-        stamps = g['stamps'][result.frames]
         n_true = g['joints'].shape[1]
         entries = [('step 2 (structure)', result.step2_positions, result.structure.parents,
-                    result.seconds['structure']),
-                   ('step 3 (Alg. 2)', result.joint_positions, result.model.parents, result.seconds['joints'])]
+                    result.seconds['structure'], result.frames),
+                   ('step 3 (Alg. 2)', result.joint_positions, result.model.parents, result.seconds['joints'],
+                    result.frames)]
+        # the peers start from what Step 2 learned on: its key frames
+        key_frames = result.key_frames
+        window = registered[key_frames].astype(np.float64)
         if not args.no_surface:
             # the paper's anchors (boundary centroids on the visible surface) on the same input
             rest = pipeline.registration.rest_pose_.points
-            window = registered[result.frames].astype(np.float64)
+            observed = [result.observed[i] for i in np.searchsorted(result.frames, key_frames)]
             started = time.perf_counter()
-            surface = extract_structure(rest, window, StructureParams(anchor_depth='surface'))
+            surface = extract_structure(rest, window, dataclasses.replace(structure_params, anchor_depth='surface'))
             middle = time.perf_counter()
-            estimate = JointEstimation().fit(rest, window, result.observed, surface)
+            estimate = JointEstimation().fit(rest, window, observed, surface)
             entries += [('step 2, surface anchors', surface.joint_trajectories(), surface.parents,
-                         middle - started),
+                         middle - started, key_frames),
                         ('step 3, surface anchors', estimate.joint_trajectories(), estimate.parents,
-                         time.perf_counter() - middle)]
+                         time.perf_counter() - middle, key_frames)]
         if not args.no_dem_bones:
             started = time.perf_counter()
-            positions = dem_bones_joints(pipeline.registration.rest_pose_.points,
-                                         registered[result.frames].astype(np.float64), result.structure, 1.0)
-            entries.append(('Dem Bones SSDR', positions, result.structure.parents, time.perf_counter() - started))
-        for method, positions, parents, seconds in entries:
-            report = score(positions, parents, stamps, gt)
+            positions = dem_bones_joints(pipeline.registration.rest_pose_.points, window, result.structure, 1.0)
+            entries.append(('Dem Bones SSDR', positions, result.structure.parents, time.perf_counter() - started,
+                            key_frames))
+        for method, positions, parents, seconds, frames in entries:
+            report = score(positions, parents, g['stamps'][frames], gt)
             rows.append({'subject': subject, 'method': method, 'true_joints': n_true,
                          'joints': report.n_predicted, 'mean_error_m': report.mean_error_m,
                          'normalized_error_m': report.normalized_error_m, 'recall': report.recall,
+                         'precision': report.precision, 'articulated_recall': report.articulated_recall,
+                         'moving_recall': report.moving_recall, 'tracking_skill': report.tracking_skill,
                          'seconds': seconds, 'register_seconds': register_seconds})
             print(f'| {subject} | {n_true} | {method} | {report.n_predicted} | {report.mean_error_m:.4f} | '
-                  f'{report.normalized_error_m:.4f} | {report.recall:.2f} | {seconds:.1f} |', flush=True)
-        print(f'| {subject} | | (registration, steps 0-1) | | | | | {register_seconds:.1f} |', flush=True)
+                  f'{report.normalized_error_m:.4f} | {report.recall:.2f} | {_cell(report.precision)} | '
+                  f'{_cell(report.articulated_recall)} | {_cell(report.moving_recall)} | '
+                  f'{_cell(report.tracking_skill)} | {seconds:.1f} |', flush=True)
+        print(f'| {subject} | | (registration, steps 0-1) | | | | | | | | | {register_seconds:.1f} |', flush=True)
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=2))
     return 0
