@@ -9,8 +9,13 @@ not moving at all.
 Methods: `ours` (the defaults: robust smoothness, recapture), `ours_visibility` (and the
 visibility test), `paper` (the registration before the real-motion issue: Eq. 4 as written,
 beta_smooth = 1e5, no recapture, our translations/rotations M-step), `paper_per_node` (the
-paper's Alg. 1 node by node), `rustcpd` / `pycpd` (CPD frame to frame,
-Y_t = CPD(V_t, Y_{t-1})), `static` (the rest pose, never moved). Every method sees the same
+paper's Alg. 1 node by node), `tracker` (issue "one articulated tracker": `ours` on the
+first `window_size` frames of the default growth schedule, or the first half of a shorter
+clip; the skeleton learned on them as the nodes learn it (Steps 2 and 3); then every later
+frame fitted by that skeleton alone, the ArticulatedTracker chained from frame to frame and
+seeded once from the window's last registered frame, its LBS pose of every rest point
+scored; its ms/frame are the tracked frames'), `rustcpd` / `pycpd` (CPD frame
+to frame, Y_t = CPD(V_t, Y_{t-1})), `static` (the rest pose, never moved). Every method sees the same
 preprocessed subject points and starts from the same rest set. Each runs in its own
 process so its peak memory (max RSS) is its own. Needs the `bench` extra:
 pip install -e .[bench]. Prints a Markdown table; `--json FILE` keeps the raw numbers.
@@ -52,7 +57,7 @@ from skel_extract_ros.sim.sources import simulate_swing  # noqa: E402
 
 DATA = Path(os.environ.get('SKEL_SHARED_DATA', REPO.parent / 'shared' / 'data'))
 SAMBA = Path(os.environ.get('SKEL_SAMBA', DATA / 'samba_mesh_sequence.npz'))
-METHODS = ('ours', 'ours_visibility', 'paper', 'paper_per_node', 'rustcpd', 'pycpd', 'static')
+METHODS = ('ours', 'ours_visibility', 'paper', 'paper_per_node', 'tracker', 'rustcpd', 'pycpd', 'static')
 METHOD_PARAMS = {'ours': {}, 'ours_visibility': {'visibility': True},
                  'paper': {'smoothness': 'paper', 'recapture': False},
                  'paper_per_node': {'smoothness': 'paper', 'recapture': False, 'm_step': 'per_node'}}
@@ -142,6 +147,8 @@ def worker(name: str, method: str, cache: Path) -> None:
             started = time.perf_counter()
             registered.append(registration.register_frame(frame).points)
             times.append(time.perf_counter() - started)
+    elif method == 'tracker':
+        registered, times = track_with_skeleton(rest, frames)
     elif method == 'static':
         registered = [rest] * len(frames)
         times = [0.0] * len(frames)
@@ -172,6 +179,31 @@ def worker(name: str, method: str, cache: Path) -> None:
     # frames before the rest pose (the subject not yet wholly in view) are not registered
     points = np.concatenate([np.full((start, len(rest), 3), np.nan), np.array(registered)])
     np.savez(cache / f'{name}_{method}_out.npz', points=points, times=np.array(times))
+
+
+def track_with_skeleton(rest: np.ndarray, frames: list) -> tuple:
+    """The `tracker` method: (registered points per frame, seconds per tracked frame): the
+    times are the tracker's own (after the window), without the learning (Steps 2 and 3,
+    once) or the window's registration."""
+    from skel_extract_ros.core.growth import GrowthSchedule, SkeletonGrowth
+    from skel_extract_ros.core.live import ArticulatedTracker, LiveJointTracker
+    registration = NonRigidRegistration(rest, RegistrationParams())
+    # a clip shorter than two windows is learned on its first half, so half is tracked
+    window = min(GrowthSchedule().window_size, len(frames) // 2)
+    registered = [registration.register_frame(frame).points for frame in frames[:window]]
+    times = []
+    model = SkeletonGrowth(rest).update(np.arange(window), np.array(registered), frames[:window]).model
+    if model is None:
+        raise RuntimeError(f'no skeleton learned on the first {window} frames')
+    pose = LiveJointTracker(model)                  # every model point, in the registered order
+    tracker = ArticulatedTracker(model)
+    tracker.seed(*pose.fit(registered[-1]))
+    for frame in frames[window:]:
+        started = time.perf_counter()
+        rotations, translations = tracker.fit(frame)
+        times.append(time.perf_counter() - started)
+        registered.append(pose.deform(rotations, translations))
+    return registered, times
 
 
 def run_method(name: str, method: str, cache: Path):
@@ -219,7 +251,11 @@ def main() -> int:
                 continue
             gt, points_per_frame = prepare(name, args.frames, cache, real)
             for method in methods:
-                registered, times, memory = run_method(name, method, cache)
+                try:
+                    registered, times, memory = run_method(name, method, cache)
+                except RuntimeError as error:      # one method failing on one sequence
+                    print(f'| {name} | {points_per_frame} | {method} | failed: {error} | | | | | |', flush=True)
+                    continue
                 result = evaluate_registration(registered, gt.stamps[:len(registered)], gt)
                 drift = ' / '.join(f'{100 * result["drift_m"][k]:.1f}' for k in ('30', '60', '90')
                                    if k in result['drift_m'])

@@ -100,7 +100,7 @@ def test_balanced_e_step_pulls_a_slid_chain_out_along_its_stranded_observations(
     """A chain of centroids 1 cm apart that slid back along its data: it covers 0-20 cm of
     observations that reach 26 cm (sigma 1.5 cm). Under Eq. 3 the last centroid takes the
     stranded observations alone (mass 10 against a median of 2) and is the only one pulled
-    out (its target 2.7 cm ahead, the third from the end 0.2 cm; measured). Capped at 1.2 x
+    out (its target 2.7 cm ahead, the third from the end 0.5 cm; measured). Capped at 1.2 x
     the median, that mass goes to the centroids behind it: each of the last six is pulled
     further out, the chain's end as a whole. A centroid without data keeps none, and no
     observation's mass is lost."""

@@ -13,7 +13,10 @@ E-step (Eq. 3), truncated: p_mi = exp(-|v_i - y'_m|^2 / 2 sigma2) / (sum_m' ... 
     neighbour lists are queried again only when a centroid has moved a rest spacing or
     sigma has grown (`core.gmm.CandidateCache`, as in Alg. 2 and the live fit): once EM
     has found the frame the centroids move by millimetres, and the query is a large part
-    of an iteration.
+    of an iteration. With `mass_cap` > 0 (off by default) a centroid far over the
+    median posterior mass hands part of it to its neighbours (`core.gmm`, "Balanced
+    E-step"): no longer Eq. 3's E-step, so the convergence statement below is for
+    mass_cap 0.
 
 M-step (Eq. 4): E_GMM + beta_smooth / 2 E_smooth + beta_small / 2 E_small over the node
 transforms, R_j in SO(3), in exact blocks that never raise it (`m_step`, with the
