@@ -2,17 +2,20 @@
 """Skeleton benchmark: joints after Step 2, after Step 3, and with Dem Bones (SSDR) as peer.
 
     python bench/bench_skeleton.py [--frames 90] [--subjects human,upper_body,arm,hand,fish]
+                                   [--n-clusters K]
 
-For each simulated subject (320x240, Kinect noise) the sequence is registered once
-(Step 0-1); then (a) the joints of the skeletal structure (Step 2, the paper's Fig. 5
-situation), (b) the joints after Alg. 2 (Step 3), and (c) Dem Bones' SSDR (py-dem-bones
-0.13.1) run on the same registered sequence, initialised with the Step 2 labels as hard
+For each simulated subject (320x240, Kinect noise) the sequence is registered once (Step
+0-1) and learned once on every registered frame (a growth window as long as the sequence);
+then (a) the joints of the skeletal structure (Step 2, the paper's Fig. 5 situation), (b)
+the joints after Alg. 2 (Step 3), and (c) Dem Bones' SSDR (py-dem-bones 0.13.1) run on Step
+2's key frames of the same registered sequence, initialised with the Step 2 labels as hard
 weights and the Step 2 bone transforms (its own initialisation needs mesh faces; a
 nearest-neighbour triangle per point gives its weight smoothing an adjacency), its bone
-transforms then turned into joints by the same joint solve (E_Joint); and (d) Steps 2 and
-3 again with the paper's joint anchors (the boundary centroid on the visible surface,
-anchor_depth=surface) instead of the default medial anchors. Prints a Markdown table;
-`--json FILE` keeps the raw numbers. Needs the `bench` extra.
+transforms then turned into joints by the same joint solve (E_Joint); and (d) Steps 2 and 3
+again on those key frames with the paper's joint anchors (the boundary centroid on the
+visible surface, anchor_depth=surface) instead of the default medial anchors. The scores are
+the real-motion yardstick's (`evaluate_joints`). Prints a Markdown table; `--json FILE`
+keeps the raw numbers. Needs the `bench` extra.
 """
 from __future__ import annotations
 
