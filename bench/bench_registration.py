@@ -47,6 +47,8 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from skel_extract_ros.core.growth import GrowthSchedule, SkeletonGrowth  # noqa: E402
+from skel_extract_ros.core.live import ArticulatedTracker, LiveJointTracker  # noqa: E402
 from skel_extract_ros.core.preprocess import Preprocessor  # noqa: E402
 from skel_extract_ros.core.registration import NonRigidRegistration, RegistrationParams  # noqa: E402
 from skel_extract_ros.core.rest_pose import RestPose  # noqa: E402
@@ -185,7 +187,6 @@ def worker(name: str, method: str, cache: Path) -> None:
 def tracker_window(n_frames: int) -> int:
     """Frames the `tracker` method registers and learns on before it tracks: the default
     growth schedule's window, or the first half of a clip shorter than two windows."""
-    from skel_extract_ros.core.growth import GrowthSchedule
     return min(GrowthSchedule().window_size, n_frames // 2)
 
 
@@ -193,8 +194,6 @@ def track_with_skeleton(rest: np.ndarray, frames: list) -> tuple:
     """The `tracker` method: (registered points per frame, seconds per tracked frame): the
     times are the tracker's own (after the window), without the learning (Steps 2 and 3,
     once) or the window's registration."""
-    from skel_extract_ros.core.growth import SkeletonGrowth
-    from skel_extract_ros.core.live import ArticulatedTracker, LiveJointTracker
     registration = NonRigidRegistration(rest, RegistrationParams())
     window = tracker_window(len(frames))
     registered = [registration.register_frame(frame).points for frame in frames[:window]]

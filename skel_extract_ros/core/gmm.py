@@ -107,8 +107,9 @@ def gmm_posteriors(observed: np.ndarray, centroids: np.ndarray, sigma2: float, o
     row_sum = gauss.sum(axis=1)
     c = (2.0 * np.pi * sigma2) ** 1.5 * omega * M / ((1.0 - omega) * N)
     flat = np.where(found, idx, M).ravel()
-    kernel = gauss if mass_cap <= 0 else _capped_kernel(gauss, flat, c, M, mass_cap)
-    posteriors, P1 = _normalised(kernel, flat, c, M)
+    posteriors, P1 = _normalised(gauss, flat, c, M)
+    if mass_cap > 0:
+        posteriors, P1 = _capped(gauss, posteriors, P1, flat, c, M, mass_cap)
     Px = np.stack([np.bincount(flat, weights=(posteriors * observed[:, axis:axis + 1]).ravel(),
                                minlength=M + 1)[:M] for axis in range(3)], axis=1)
     likelihood = (1.0 - omega) / M * (2.0 * np.pi * sigma2) ** -1.5 * row_sum + omega / N
@@ -132,12 +133,13 @@ _CAP_PASSES = 3
 _HAS_DATA = 1e-3
 
 
-def _capped_kernel(kernel: np.ndarray, flat: np.ndarray, c: float, M: int, mass_cap: float) -> np.ndarray:
-    """The balanced E-step (module docstring): kernel (N, K) with the columns of centroids
-    over mass_cap x the median mass of the centroids with data scaled down, in _CAP_PASSES
-    passes; flat (N * K,) the centroid of each entry (M = none)."""
+def _capped(kernel: np.ndarray, posteriors: np.ndarray, P1: np.ndarray, flat: np.ndarray, c: float, M: int,
+            mass_cap: float) -> tuple:
+    """The balanced E-step (module docstring): from kernel (N, K) and its Eq. 3 posteriors
+    and P1, the columns of centroids over mass_cap x the median mass of the centroids with
+    data scaled down and the rows normalised again, _CAP_PASSES times; flat (N * K,) the
+    centroid of each entry (M = none). -> (posteriors (N, K), P1 (M,))."""
     for _ in range(_CAP_PASSES):
-        _, P1 = _normalised(kernel, flat, c, M)
         with_data = P1[P1 > _HAS_DATA]
         if len(with_data) == 0:
             break
@@ -146,7 +148,8 @@ def _capped_kernel(kernel: np.ndarray, flat: np.ndarray, c: float, M: int, mass_
         if scale.min() >= 1.0:
             break
         kernel = kernel * np.append(scale, 0.0)[flat].reshape(kernel.shape)
-    return kernel
+        posteriors, P1 = _normalised(kernel, flat, c, M)
+    return posteriors, P1
 
 
 class CandidateCache:
