@@ -105,14 +105,14 @@ def test_run_node_ends_cleanly_when_ctrl_c_races_the_executor(monkeypatch):
     import rclpy
     from rclpy._rclpy_pybind11 import RCLError
 
-    from skel_extract_ros.nodes.common import run_node
+    from skel_extract_ros.nodes.common import spin_node
 
     def racing_spin(node, executor=None):
         rclpy.shutdown()          # what the signal handler does, from another thread
         raise RCLError('failed to initialize wait set: the given context is not valid')
 
     monkeypatch.setattr(rclpy, 'spin', racing_spin)
-    assert run_node(lambda: rclpy.create_node('shutdown_race')) == 0
+    assert spin_node(lambda: rclpy.create_node('shutdown_race')) == 0
     assert not rclpy.ok()
 
     def failing_spin(node, executor=None):
@@ -120,17 +120,17 @@ def test_run_node_ends_cleanly_when_ctrl_c_races_the_executor(monkeypatch):
 
     monkeypatch.setattr(rclpy, 'spin', failing_spin)
     with pytest.raises(RCLError):
-        run_node(lambda: rclpy.create_node('real_failure'))
+        spin_node(lambda: rclpy.create_node('real_failure'))
     assert not rclpy.ok()         # shut down on the way out all the same
 
 
-def test_run_node_stops_the_nodes_work_and_leaves_its_entities_to_the_context(monkeypatch):
+def test_spin_node_stops_the_nodes_work_and_leaves_its_entities_to_the_context(monkeypatch):
     """On Ctrl-C the node's threads and child processes stop (stop_work); rclpy's
     destroy_node is not called: it wakes the executor that rclpy's signal thread is
     shutting down, and a node hung there (the accumulator, twice in benchmark replays)."""
     import rclpy
 
-    from skel_extract_ros.nodes.common import WorkingNode, run_node
+    from skel_extract_ros.nodes.common import WorkingNode, spin_node
 
     calls = []
 
@@ -147,5 +147,39 @@ def test_run_node_stops_the_nodes_work_and_leaves_its_entities_to_the_context(mo
         raise KeyboardInterrupt
 
     monkeypatch.setattr(rclpy, 'spin', interrupted_spin)
-    assert run_node(lambda: Worked('worked')) == 0
+    assert spin_node(lambda: Worked('worked')) == 0
     assert calls == ['stop_work'] and not rclpy.ok()
+
+
+EXIT_PROBE = '''
+import atexit, sys
+import rclpy
+from skel_extract_ros.nodes.common import ParameterError, run_node
+
+def interrupted_spin(node, executor=None):
+    rclpy.shutdown()
+    raise KeyboardInterrupt
+
+def bad_parameters():
+    raise ParameterError('smoothing_radius must be > 0')
+
+rclpy.spin = interrupted_spin
+atexit.register(lambda: print('finalised'))
+print('spun', flush=False)
+run_node((lambda: rclpy.create_node('exiting')) if sys.argv[1] == 'ctrl-c' else bad_parameters)
+print('returned')
+'''
+
+
+@pytest.mark.parametrize('ending, code', [('ctrl-c', 0), ('parameters', 2)])
+def test_a_node_process_ends_without_the_interpreters_finalisation(ending, code):
+    """After Ctrl-C (or a parameter error) the node process ends in run_node with its exit
+    code: what it printed is flushed, and nothing is left to the interpreter's finalisation
+    (the garbage collector finalising rclpy's entities once hung a joint node in CI)."""
+    environment = dict(os.environ, ROS_DOMAIN_ID=str(100 + (os.getpid() + 17) % 100),
+                       ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
+    done = subprocess.run([sys.executable, '-c', EXIT_PROBE, ending], capture_output=True, text=True,
+                          env=environment, timeout=60)
+    assert done.returncode == code, done.stderr
+    assert done.stdout.split() == ['spun']            # flushed; neither returned nor finalised
+    assert ('must be > 0' in done.stderr) == (ending == 'parameters')

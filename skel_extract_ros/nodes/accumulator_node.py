@@ -20,6 +20,7 @@ import collections
 import json
 import threading
 import time
+from typing import NoReturn
 
 import numpy as np
 from sensor_msgs.msg import PointCloud2
@@ -216,9 +217,9 @@ class AccumulatorNode(WorkingNode):
         self.extractor.stop()
 
 
-def main(args=None) -> int:
-    return run_node(AccumulatorNode, args)
+def main(args=None) -> NoReturn:
+    run_node(AccumulatorNode, args)
 
 
 if __name__ == '__main__':
-    raise SystemExit(main())
+    main()

@@ -5,6 +5,7 @@ from __future__ import annotations
 import collections
 import threading
 import time
+from typing import NoReturn
 
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType,
                                 SetParametersResult)
@@ -187,18 +188,35 @@ def release_freed_memory() -> None:
         pass
 
 
-def run_node(node_factory, args=None) -> int:
-    """The demo_nodes_py main: spin until Ctrl-C or shutdown, no traceback. Parameter
-    errors end the node with one line and exit code 2. SIGUSR1 writes every thread's
-    stack to stderr (the node's log) and the node goes on: what a node that does not end
-    or answer is doing (`skel-extract replay` sends it before killing a node that did not
-    end on Ctrl-C).
-
-    On the way out the node's own threads and child processes stop (`stop_work`), and its
-    ROS entities go with the context and the process, as in demo_nodes_py: rclpy's
+def run_node(node_factory, args=None) -> NoReturn:
+    """A node process's main: `spin_node`, then the process ends with its exit code
+    (`os._exit` once stdout and stderr are flushed) instead of leaving the ROS entities to
+    the interpreter's finalisation. Both ways of destroying them hung now and then: rclpy's
     destroy_node wakes the executor, which rclpy's signal thread may be shutting down at
-    that moment after a Ctrl-C, and it hung there now and then (the accumulator in two
-    benchmark replays: its main thread in Node._wake_executor, killed after 20 s)."""
+    that moment after a Ctrl-C (the accumulator's main thread in Node._wake_executor), and
+    the garbage collector finalising them after main returned (a joint node in CI: its
+    only thread "Garbage-collecting", no Python frame; rclpy's Fast DDS destruction-order
+    hangs, ros2/rclpy#456, #470). Nothing is left to finalise that a user would miss: the
+    work threads are joined, the child processes reaped, the context shut down. An
+    exception escaping spin_node (a real failure) still gets its traceback and the
+    interpreter's own exit."""
+    import os
+    import sys
+
+    exit_code = spin_node(node_factory, args)
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(exit_code)
+
+
+def spin_node(node_factory, args=None) -> int:
+    """The demo_nodes_py main: spin until Ctrl-C or shutdown, no traceback; returns the
+    exit code. Parameter errors end the node with one line and exit code 2. SIGUSR1 writes
+    every thread's stack to stderr (the node's log) and the node goes on: what a node that
+    does not end or answer is doing (`skel-extract replay` sends it before killing a node
+    that did not end on Ctrl-C). On the way out the node's own threads and child processes
+    stop (`stop_work`) and the context shuts down; its ROS entities are left to the
+    context and the process (`run_node`)."""
     import faulthandler
     import signal
     import sys

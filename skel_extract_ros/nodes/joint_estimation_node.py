@@ -27,6 +27,8 @@ runs; Alg. 2's model then replaces it under the same names.
 """
 from __future__ import annotations
 
+from typing import NoReturn
+
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import String
 
@@ -127,9 +129,9 @@ class JointEstimationNode(WorkingNode):
         self.stages.stop()
 
 
-def main(args=None) -> int:
-    return run_node(JointEstimationNode, args)
+def main(args=None) -> NoReturn:
+    run_node(JointEstimationNode, args)
 
 
 if __name__ == '__main__':
-    raise SystemExit(main())
+    main()

@@ -31,6 +31,8 @@ is learned the newest are, at lower priority (`queue_size`, `registration_nicene
 """
 from __future__ import annotations
 
+from typing import NoReturn
+
 import numpy as np
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import String
@@ -198,9 +200,9 @@ class RegistrationNode(WorkingNode):
         self.stages.stop()
 
 
-def main(args=None) -> int:
-    return run_node(RegistrationNode, args)
+def main(args=None) -> NoReturn:
+    run_node(RegistrationNode, args)
 
 
 if __name__ == '__main__':
-    raise SystemExit(main())
+    main()
