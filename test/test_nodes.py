@@ -38,8 +38,10 @@ def arm():
 
 
 def small_registration(ros, **extra):
-    # These tests are about the ROS plumbing, frame by frame from the first cloud; the
-    # subject segmentation (which waits for motion) has its own node tests.
+    # These tests are about the ROS plumbing, frame by frame from the first cloud (the rest
+    # pose's choice among held clouds has its own test); the subject segmentation (which
+    # waits for motion) has its own node tests.
+    extra = {'rest_pose.choice_frames': 1, **extra}
     overrides = [Parameter('rest_pose.n_points', value=600), Parameter('segmentation.enabled', value=False)]
     overrides += [Parameter(k, value=v) for k, v in extra.items()]
     return ros.add(RegistrationNode, parameter_overrides=overrides)
@@ -74,7 +76,9 @@ def test_registration_node_registers_as_the_offline_pipeline(ros, arm):
     (0.0 difference) over 5 frames in which the arm moves up to 2.2 cm a frame; tolerance
     1e-6 m (float32 rounding). Measured off by: 3.5e-6 m with beta_small read as 2 instead
     of 1, 5.6 mm starting every frame from the rest pose, 0.49 m without the outlier
-    removal step."""
+    removal step. The 5 clouds are fewer than choice_frames: the node holds them until
+    they stop coming, then chooses the rest pose among them as `run` does at the end, and
+    publishes it first, stamped with the first cloud."""
     n = 5
     offline = SequenceRegistration(RegistrationParams(), RestPoseParams(n_points=600), PreprocessParams(),
                                    segmentation_params=SegmentationParams(enabled=False))
@@ -82,16 +86,19 @@ def test_registration_node_registers_as_the_offline_pipeline(ros, arm):
     assert (offline.statuses_ == 'ok').all()
     assert np.abs(expected[-1] - expected[0]).max() > 0.02          # the arm moved
 
-    small_registration(ros)
+    node = small_registration(ros, **{'rest_pose.choice_frames': 60})
     registered = ros.listen('registered_points', PointCloud2, STREAM_QOS)
     rests = ros.listen('rest_points', PointCloud2, LATCHED_QOS)
     pub = ros.publisher('points', PointCloud2, QoSProfile(depth=10))
     ros.wait_matched(pub)
-    for i in range(n):          # one at a time: queue_size 1 would skip a burst
+    for i in range(n):          # one at a time: the camera stage keeps the newest cloud only
         pub.publish(cloud(arm.clouds[i], arm.stamps_ns[i]))
-        ros.wait(lambda: len(registered) == i + 1, what=f'registered frame {i}')
-    ros.wait(lambda: len(rests) == 1, what='rest_points')
+        ros.wait(lambda: node.stages.processed == i + 1, what=f'cloud {i} taken')
+    assert registered == [] and len(node.stages.frame_registrar.held) == n
+    ros.wait(lambda: len(registered) == n, what='the held clouds registered once they stopped coming')
+    assert len(rests) == 1 and stamps_of(rests) == [arm.stamps_ns[0]]
     np.testing.assert_allclose(decode_xyz(rests[0], dtype=np.float64), offline.rest_pose_.points, atol=1e-9)
+    assert stamps_of(registered) == list(arm.stamps_ns[:n])
     got = np.stack([decode_xyz(m) for m in registered])
     np.testing.assert_allclose(got, expected, rtol=0, atol=1e-6)
 
@@ -267,8 +274,8 @@ def test_registration_starts_from_the_newest_posed_model_of_the_joint_node(ros, 
     joint node's live fit of a frame in the gap), and lands where frame-by-frame
     registration does; a posed model of another size, with non-finite points (warned) or
     not newer than the last registered frame is not used."""
-    offline = SequenceRegistration(RegistrationParams(), RestPoseParams(n_points=600), PreprocessParams(),
-                                   segmentation_params=SegmentationParams(enabled=False))
+    offline = SequenceRegistration(RegistrationParams(), RestPoseParams(n_points=600, choice_frames=1),
+                                   PreprocessParams(), segmentation_params=SegmentationParams(enabled=False))
     expected = offline.register(list(arm.clouds))
     node = small_registration(ros)
     registered = ros.listen('registered_points', PointCloud2, STREAM_QOS)

@@ -80,8 +80,12 @@ def test_replay_realtime_publishes_like_a_camera_and_reports_what_it_delivered(t
     was registered gets joints, and the numbers add up to the frames published."""
     import re
     bag, _ = arm_bag
-    # 3 Hz: the registration shares 2 loaded cores with the camera stage and needs 2 frames
-    done = run_cli_private_domain(71, 'replay', bag, '--out', tmp_path / 'out', '--realtime', '--rate', '0.1')
+    # 3 Hz: the registration shares 2 loaded cores with the camera stage and needs 2 frames;
+    # the rest pose chosen among the first 4 clouds, so joints come while the 16 are published
+    params = tmp_path / 'params.yaml'
+    params.write_text('registration_node:\n  ros__parameters:\n    rest_pose:\n      choice_frames: 4\n')
+    done = run_cli_private_domain(71, 'replay', bag, '--out', tmp_path / 'out', '--realtime', '--rate', '0.1',
+                                  '--params', params)
     assert done.returncode == 0, done.stderr[-2000:]
     line = re.search(r'realtime: (\d+) of (\d+) camera frames got joints \(([\d.]+) Hz\), (\d+) without; '
                      r'latency cloud -> joints median (\S+) ms, p95 (\S+) ms', done.stdout)
@@ -108,7 +112,7 @@ def test_replay_realtime_room_live_joints_for_camera_frames_without_registration
     bag: once the skeleton exists, camera frames get joints from the live fit to their
     subject points, including frames the registration never registered, and (the live
     rate) nearly every camera frame the segmentation passed on after that gets joints.
-    A small window so the skeleton comes early; 15 Hz: faster than even this small subject's
+    A small window (and rest pose choice) so the skeleton comes early; 15 Hz: faster than even this small subject's
     registration (it registered half the frames when measured; at 7.5 Hz it registered every
     one on an idle machine, which shows nothing), slow enough for a loaded 2-core CI machine
     (the 30 Hz measurements are in bench/README.md)."""
@@ -117,7 +121,8 @@ def test_replay_realtime_room_live_joints_for_camera_frames_without_registration
     done = run_cli('simulate', '--subject', 'arm', '--scene', 'room', '--frames', '120', '--out', bag)
     assert done.returncode == 0, done.stderr[-2000:]
     params = tmp_path / 'params.yaml'
-    params.write_text('accumulator_node:\n  ros__parameters:\n    window_size: 6\n')
+    params.write_text('accumulator_node:\n  ros__parameters:\n    window_size: 6\n'
+                      'registration_node:\n  ros__parameters:\n    rest_pose:\n      choice_frames: 6\n')
     done = run_cli_private_domain(72, 'replay', bag, '--out', tmp_path / 'out', '--realtime', '--rate', '0.5',
                                   '--params', params)
     assert done.returncode == 0, done.stderr[-2000:]

@@ -1,6 +1,7 @@
-"""The rest pose Q (paper Sec. 4, end): a clean, evenly spread point set of the first frame.
+"""The rest pose Q (paper Sec. 4, end): a clean, evenly spread point set of one frame (the
+paper's first; which frame: core.stream.FrameRegistrar).
 
-The first frame's points are noisy and unevenly spread (dense near the camera, holes,
+A frame's points are noisy and unevenly spread (dense near the camera, holes,
 flying pixels), so the paper reconstructs a surface and resamples it. Here: normals from
 local PCA oriented towards the camera, Open3D screened Poisson reconstruction, the mesh
 trimmed where Poisson invented surface far from the data (low density or far from every
@@ -27,6 +28,10 @@ class RestPoseParams:
     """Rest-pose parameters (the reconstruction in the module docstring)."""
 
     n_points: int = parameter(2000, 'M, the rest points = the registered points per frame', 100, 1_000_000)
+    choice_frames: int = parameter(60, 'the rest pose is built from the most spread-out subject (RMS distance '
+                                   'of its points from their centroid) among this many consecutive frames from '
+                                   'the first one where it is wholly in view, and those frames are registered '
+                                   'backward and forward from it; 1 = the first frame (the paper)', 1, 100_000)
     poisson_depth: int = parameter(8, 'octree depth of the Poisson reconstruction of the rest pose', 4, 12)
     density_quantile: float = parameter(0.05, 'Poisson vertices below this quantile of the Poisson density are '
                                         'trimmed, a fraction', 0.0, 1.0)
@@ -41,6 +46,19 @@ class RestPoseParams:
 
     def __post_init__(self):
         validate(self)
+
+
+def spread(points: np.ndarray) -> float:
+    """RMS distance (m) of the points (N, 3) from their centroid (NaN rows ignored; 0 for
+    none): how far the subject's parts are from one another. The deformation graph is
+    built on the rest pose by distance, so parts touching there (an arm along the torso,
+    the legs together) are tied, and the ties hold them together when they later part; of
+    a few frames of a subject, the most spread-out has the fewest such contacts."""
+    points = np.asarray(points, dtype=np.float64)
+    points = points[np.isfinite(points).all(axis=1)]
+    if len(points) == 0:
+        return 0.0
+    return float(np.sqrt(np.mean(np.sum((points - points.mean(axis=0)) ** 2, axis=1))))
 
 
 @dataclass
@@ -60,7 +78,7 @@ class RestPose:
         points = np.asarray(points, dtype=np.float64)
         points = points[np.isfinite(points).all(axis=1)]
         if len(points) < max(100, params.n_points // 10):
-            raise RestPoseError(f'the first frame has only {len(points)} usable points; '
+            raise RestPoseError(f'the frame has only {len(points)} usable points; '
                                 'a rest pose needs at least a few hundred')
         cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
         cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(params.normal_neighbours))
@@ -78,7 +96,7 @@ class RestPose:
         mesh.remove_degenerate_triangles()
         mesh.remove_unreferenced_vertices()
         if len(mesh.triangles) < 50:
-            raise RestPoseError('the surface reconstructed from the first frame is degenerate '
+            raise RestPoseError('the surface reconstructed from the frame is degenerate '
                                 f'({len(mesh.triangles)} triangles left after trimming)')
         o3d.utility.random.seed(seed)
         sampled = mesh.sample_points_poisson_disk(params.n_points, init_factor=5)

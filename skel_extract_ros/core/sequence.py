@@ -36,8 +36,9 @@ class StepTimes:
 
 
 class SequenceRegistration:
-    """The subject found in every frame, its rest pose from the first frame where it is
-    wholly in view, then every frame registered from the previous.
+    """The subject found in every frame, its rest pose (core.stream.FrameRegistrar: the most
+    spread-out of the first frames where it is wholly in view), then every frame registered
+    from its neighbour.
 
     Parameters are dataclasses (see their docstrings). Frames before the rest pose get NaN
     points and status 'empty'. Attributes set by `register` (sklearn style): rest_pose_,
@@ -64,16 +65,35 @@ class SequenceRegistration:
         """Register raw frames -> (F, M, 3) float32 metres. A frame is an organized cloud
         (H, W, 3) or (N, 3) points, NaN allowed.
 
-        `on_frame(index, status)` is called after each frame (progress reporting).
+        `on_frame(index, status)` is called after each frame (progress reporting; the frames
+        held while the rest pose is chosen all at once, when it is).
         """
         finder = SubjectFinder(self.segmentation_params, self.preprocess_params)
         registrar = FrameRegistrar(self.params, self.rest_params)
         self.times_ = StepTimes()
         self.rest_pose_ = None
         self.segmentation_ = []
-        points, statuses, sigma2, iterations, recaptured = [], [], [], [], []
         self.observed_ = []
         M = self.rest_params.n_points
+        # a frame's result may come frames later (held while the rest pose is chosen)
+        results = []
+
+        def record(steps) -> None:
+            for step in steps:
+                self.times_.rest_pose += step.seconds_rest_pose
+                if step.rest_pose_built:
+                    self.rest_pose_ = registrar.rest_pose
+                    self.registration_ = registrar.registration.registration
+                result = step.result
+                if result is None:
+                    result = FrameResult(np.full((M, 3), np.nan), STATUS_EMPTY, np.nan, 0, 0.0)
+                else:
+                    self.times_.registration += step.seconds_registration
+                    self.times_.per_frame_registration.append(step.seconds_registration)
+                results[step.frame] = result
+                if on_frame:
+                    on_frame(step.frame, result.status)
+
         for index, raw in enumerate(frames):
             subject = finder(*split_layout(raw))
             self.times_.segmentation += subject.seconds_segmentation
@@ -81,24 +101,14 @@ class SequenceRegistration:
             self.segmentation_.append(subject.segmentation)
             if self.keep_observed:
                 self.observed_.append(subject.observed.astype(np.float32))
-            step = registrar(subject.observed, subject.segmentation)
-            self.times_.rest_pose += step.seconds_rest_pose
-            if step.rest_pose_built:
-                self.rest_pose_ = registrar.rest_pose
-                self.registration_ = registrar.registration.registration
-            result = step.result
-            if result is None:
-                result = FrameResult(np.full((M, 3), np.nan), STATUS_EMPTY, np.nan, 0, 0.0)
-            else:
-                self.times_.registration += step.seconds_registration
-                self.times_.per_frame_registration.append(step.seconds_registration)
-            points.append(result.points.astype(np.float32))
-            statuses.append(result.status)
-            sigma2.append(result.sigma2)
-            iterations.append(result.iterations)
-            recaptured.append(result.recaptured)
-            if on_frame:
-                on_frame(index, result.status)
+            results.append(None)
+            record(registrar(subject.observed, subject.segmentation, frame=index))
+        record(registrar.flush())
+        points = [result.points.astype(np.float32) for result in results]
+        statuses = [result.status for result in results]
+        sigma2 = [result.sigma2 for result in results]
+        iterations = [result.iterations for result in results]
+        recaptured = [result.recaptured for result in results]
         self.statuses_ = np.array(statuses)
         self.sigma2_ = np.array(sigma2)
         self.iterations_ = np.array(iterations)

@@ -8,8 +8,9 @@ take the same decisions on the same frames.
 
     >>> finder, registrar = SubjectFinder(), FrameRegistrar(RegistrationParams())
     >>> subject = finder(points, height, width)        # raw (H*W, 3) m, NaN allowed
-    >>> step = registrar(subject.observed, subject.segmentation)
-    >>> step.status, step.result                       # 'nobody' ... or Alg. 1's FrameResult
+    >>> for step in registrar(subject.observed, subject.segmentation, frame=index):
+    ...     step.frame, step.status, step.result       # 'nobody' ... or Alg. 1's FrameResult
+    >>> registrar.flush()                              # the stream ended: the frames still held
 """
 from __future__ import annotations
 
@@ -21,7 +22,7 @@ import numpy as np
 from .preprocess import PreprocessParams, Preprocessor
 from .registration import NonRigidRegistration, RegistrationParams
 from .registration.params import FrameResult
-from .rest_pose import RestPose, RestPoseError, RestPoseParams
+from .rest_pose import RestPose, RestPoseError, RestPoseParams, spread
 from .segmentation import STATUS_NOBODY, Segmentation, SegmentationParams, SubjectSegmenter
 
 # A subject that touches the image border is partly out of view: its rest pose waits until
@@ -110,11 +111,11 @@ class InProcessRegistration:
 
 @dataclass
 class FrameStep:
-    """What FrameRegistrar made of one frame. status: a WAIT_* reason (no rest pose yet,
-    result None) or Alg. 1's frame status (result its FrameResult); rest_pose_built: this
-    frame became the rest pose; started_from_given: Alg. 1 started from the start_points
-    given; error: why the rest pose could not be built from it; seconds spent on the rest
-    pose and on Alg. 1."""
+    """What FrameRegistrar made of one frame. frame: the caller's token of the frame;
+    status: a WAIT_* reason (no rest pose yet, result None) or Alg. 1's frame status
+    (result its FrameResult); rest_pose_built: this frame became the rest pose;
+    started_from_given: Alg. 1 started from the start_points given; error: why no rest
+    pose could be built; seconds spent on the rest pose and on Alg. 1."""
 
     status: str
     result: FrameResult | None = None
@@ -123,54 +124,104 @@ class FrameStep:
     error: str = ''
     seconds_rest_pose: float = 0.0
     seconds_registration: float = 0.0
+    frame: object = None
+
+
+@dataclass
+class _HeldFrame:
+    """A frame held while the rest pose's frame is chosen: its subject (N, 3) m, the
+    caller's token, and whether the gate let it through (it may become the rest pose)."""
+
+    observed: np.ndarray
+    frame: object
+    candidate: bool
 
 
 class FrameRegistrar:
-    """The rest pose from the first frame the gate lets through, then every frame
-    registered (Alg. 1) from the previous one, or from `start_points` when given.
+    """The rest pose, then every frame registered (Alg. 1) from the previous one, or from
+    `start_points` when given.
+
+    The rest pose (RestPoseParams.choice_frames): from the first frame the gate lets
+    through, `choice_frames` consecutive frames are held; the rest pose is built from the
+    most spread-out of those the gate lets through (core.rest_pose.spread), and the held
+    frames are registered backward from it to the first and forward from it to the last,
+    each from its neighbour, as Alg. 1 registers any frame. Registration then goes on
+    from the last held frame. With choice_frames 1 the first frame the gate lets through
+    is the rest pose (the paper). `flush` ends the choice early (a stream that ended or
+    paused).
 
     build_rest_pose(observed, rest_params) -> RestPose and registration (install,
     register_frame) run where the caller wants them: here by default, in child processes
-    in the registration node."""
+    in the registration node. on_rest_pose(rest_pose, first, chosen), when given, is called
+    as soon as the rest pose is built, before the held frames are registered (first and
+    chosen: the tokens of the first held frame and of the rest pose's)."""
 
     def __init__(self, params: RegistrationParams | None = None, rest_params: RestPoseParams | None = None,
-                 build_rest_pose=RestPose.from_points, registration=None):
+                 build_rest_pose=RestPose.from_points, registration=None, on_rest_pose=None):
         self.params = params or RegistrationParams()
         self.rest_params = rest_params or RestPoseParams()
         self.build_rest_pose = build_rest_pose
         self.registration = registration or InProcessRegistration()
+        self.on_rest_pose = on_rest_pose
         self.reset()
 
     def reset(self) -> None:
-        """Wait for a new rest pose."""
+        """Wait for a new rest pose (frames held for it are forgotten)."""
         self.gate = RestPoseGate(self.rest_params)
         self.rest_pose = None
+        self.held = []
 
     def __call__(self, observed: np.ndarray, segmentation: Segmentation,
-                 start_points: np.ndarray | None = None) -> FrameStep:
-        """observed (N, 3) m: the frame's subject; start_points (M, 3) m or None."""
-        step = FrameStep('')
+                 start_points: np.ndarray | None = None, frame=None) -> list:
+        """observed (N, 3) m: the frame's subject; start_points (M, 3) m or None; frame: the
+        caller's token, returned in the step. The FrameSteps of the frames this one
+        completes, in the order given: this frame's alone, or none while it is held for
+        the rest pose's choice, or every held frame's once the choice is made."""
         if self.rest_pose is None:
             waiting = self.gate.reason_to_wait(segmentation, len(observed))
-            if waiting is not None:
-                step.status = waiting
-                return step
-            started = time.perf_counter()
-            try:
-                rest_pose = self.build_rest_pose(observed, self.rest_params)
-            except RestPoseError as error:
-                step.status, step.error = WAIT_REST_POSE_FAILED, str(error)
-                return step
-            finally:
-                step.seconds_rest_pose = time.perf_counter() - started
-            self.registration.install(NonRigidRegistration(rest_pose.points, self.params))
-            self.rest_pose, step.rest_pose_built = rest_pose, True
+            if waiting is not None and not self.held:
+                return [FrameStep(waiting, frame=frame)]
+            self.held.append(_HeldFrame(observed, frame, waiting is None))
+            return self.flush() if len(self.held) >= self.rest_params.choice_frames else []
+        return [self._register(observed, start_points, frame)]
+
+    def flush(self) -> list:
+        """The held frames' FrameSteps now: the rest pose from the frames held so far."""
+        held, self.held = self.held, []
+        if not held:
+            return []
         started = time.perf_counter()
-        step.result = self.registration.register_frame(observed, start_points)
-        step.started_from_given = start_points is not None
-        step.seconds_registration = time.perf_counter() - started
-        step.status = step.result.status
-        return step
+        ranked = sorted((i for i, h in enumerate(held) if h.candidate), key=lambda i: -spread(held[i].observed))
+        errors = []
+        for chosen in ranked:
+            try:
+                rest_pose = self.build_rest_pose(held[chosen].observed, self.rest_params)
+                break
+            except RestPoseError as error:
+                errors.append(str(error))
+        else:
+            # no held frame gave a rest pose: the next frame the gate lets through starts over
+            steps = [FrameStep(WAIT_REST_POSE_FAILED, error=errors[-1], frame=h.frame) for h in held]
+            steps[0].seconds_rest_pose = time.perf_counter() - started
+            return steps
+        seconds_rest_pose = time.perf_counter() - started
+        self.rest_pose = rest_pose
+        if self.on_rest_pose is not None:
+            self.on_rest_pose(rest_pose, held[0].frame, held[chosen].frame)
+        steps = [None] * len(held)
+        for order in (range(chosen - 1, -1, -1), range(chosen, len(held))):
+            if len(order):
+                self.registration.install(NonRigidRegistration(rest_pose.points, self.params))
+            for i in order:
+                steps[i] = self._register(held[i].observed, None, held[i].frame)
+        steps[chosen].rest_pose_built, steps[chosen].seconds_rest_pose = True, seconds_rest_pose
+        return steps
+
+    def _register(self, observed: np.ndarray, start_points: np.ndarray | None, frame) -> FrameStep:
+        started = time.perf_counter()
+        result = self.registration.register_frame(observed, start_points)
+        return FrameStep(result.status, result, started_from_given=start_points is not None, frame=frame,
+                         seconds_registration=time.perf_counter() - started)
 
 
 # what StampOrder makes of a frame's stamp and frame_id

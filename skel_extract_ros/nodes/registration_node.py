@@ -44,7 +44,7 @@ from ..codecs.pointcloud import CloudDecodeError, decode_xyz
 from .common import (LATCHED_QOS, SENSOR_QOS, STREAM_QOS, ThrottledLog, WorkingNode, declare_params, decode_or_warn,
                      run_node)
 from .diagnostics import OK, WARN, NodeDiagnostics
-from .registration_stages import RegistrationStages
+from .registration_stages import CHOICE_QUIET_S, RegistrationStages
 
 SECTION = 'registration_node'
 
@@ -87,6 +87,7 @@ class RegistrationNode(WorkingNode):
         self.create_subscription(PointCloud2, 'skeleton/posed_points', self._on_posed, STREAM_QOS)
         self._reported_skips = 0
         self.diagnostics = NodeDiagnostics(self, self._diagnostics)
+        self.create_timer(CHOICE_QUIET_S / 2, self.stages.flush_if_quiet)
         # best effort matches every driver; reliable (for bag replay) never loses a
         # fragmented megabyte cloud to a full socket buffer, but needs a reliable publisher
         qos = SENSOR_QOS if own.input_reliability == 'best_effort' else STREAM_QOS
@@ -172,6 +173,9 @@ class RegistrationNode(WorkingNode):
         new_skips, self._reported_skips = skipped - self._reported_skips, skipped
         if camera['submitted'] == 0:
             level, state = WARN, f'waiting for input on {self.resolve_topic_name("points")}'
+        elif stages.rest_pose is None and stages.frame_registrar.held:
+            level, state = OK, (f'choosing the rest pose: {len(stages.frame_registrar.held)} of '
+                                f'{self.rest_params.choice_frames} clouds held')
         elif stages.rest_pose is None:
             level, state = WARN, f'waiting for the subject (no rest pose yet): {stages.last_status}'
         else:
@@ -193,6 +197,7 @@ class RegistrationNode(WorkingNode):
             # readers matched to both outputs (DDS drops what a volatile writer sends before)
             'outputs_matched': min(self.outputs.registered_pub.get_subscription_count(),
                                    self.outputs.filtered_pub.get_subscription_count()),
+            'clouds_held': len(stages.frame_registrar.held),
             'rest_points': 0 if stages.rest_pose is None else len(stages.rest_pose.points)}
 
     def stop_work(self) -> None:

@@ -16,6 +16,7 @@ nothing is skipped: the camera stage waits for room.
 from __future__ import annotations
 
 import threading
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -30,6 +31,14 @@ from ..codecs.messages import stamp_ns
 from .registration_process import (REST_POSE_IDLE_RELEASE_S, ChildProcessDied, RegistrationProcess,
                                    RestPoseProcess)
 from .worker import Worker
+
+
+# No subject frame for this long while frames are held for the rest pose's choice: the
+# stream ended or paused, and the choice is made from the frames held. Ten frame
+# intervals of the slowest usual depth camera (15 Hz), so a live camera never hits it.
+CHOICE_QUIET_S = 0.7
+# the registration stage's item for that
+_FLUSH = object()
 
 
 @dataclass
@@ -73,7 +82,7 @@ class RegistrationStages:
                                                         settings.registration_sched_idle)
         self.rest_pose_process = RestPoseProcess()
         self.frame_registrar = FrameRegistrar(self.params, self.rest_params, self.rest_pose_process.build,
-                                              self.registration_process)
+                                              self.registration_process, self._publish_rest)
         self._start_registration()
         self._done = 0                 # frames finished by either stage (tests, diagnostics)
         self._count_lock = threading.Lock()
@@ -118,8 +127,8 @@ class RegistrationStages:
 
     @property
     def processed(self) -> int:
-        """Frames handled to the end (registered, refused, or not passed on by the camera
-        stage); processed + skipped reaches the frames received."""
+        """Frames handled (registered, held for the rest pose's choice, refused, or not
+        passed on by the camera stage); processed + skipped reaches the frames received."""
         return self._done
 
     def warn_skipped(self) -> None:
@@ -224,6 +233,7 @@ class RegistrationStages:
     # -- registration stage ------------------------------------------------------------------
     def _start_registration(self) -> None:
         self.frame_registrar.reset()
+        self._last_subject_s = time.monotonic()
         self._rest_stamp = self._registered_stamp = None
         self.rest_pose_process.while_waiting(somebody=True)   # warm: a subject may come at once
 
@@ -246,13 +256,27 @@ class RegistrationStages:
             return None
         return points
 
-    def _register(self, frame: _SubjectFrame) -> None:
+    def flush_if_quiet(self) -> None:
+        """Frames held for the rest pose's choice and no subject frame for
+        CHOICE_QUIET_S: the stream ended or paused (a bag's end, a stopped camera), so the
+        rest pose is chosen from the frames held (on the registration stage's thread, after
+        the frames queued before). Called by a timer of the node."""
+        if (self.frame_registrar.held and time.monotonic() - self._last_subject_s > CHOICE_QUIET_S
+                and self.registration.idle):
+            self.registration.submit(_FLUSH)
+
+    def _register(self, frame) -> None:
         try:
             self._register_frame(frame)
         finally:
-            self._finished()
+            if frame is not _FLUSH:
+                self._finished()
 
-    def _register_frame(self, frame: _SubjectFrame) -> None:
+    def _register_frame(self, frame) -> None:
+        if frame is _FLUSH:
+            self._publish_steps(self.frame_registrar.flush())
+            return
+        self._last_subject_s = time.monotonic()
         if frame.epoch != self._registration_epoch:
             self._registration_epoch = frame.epoch
             self._start_registration()
@@ -264,7 +288,7 @@ class RegistrationStages:
             self.logger.info(f'nobody in view for {REST_POSE_IDLE_RELEASE_S:.0f} s: the rest pose process ends '
                              'until something moves')
         try:
-            step = self.frame_registrar(observed, frame.segmentation, self._live_start(stamp))
+            steps = self.frame_registrar(observed, frame.segmentation, self._live_start(stamp), frame)
         except ChildProcessDied:
             if self.context_ok():
                 self.log.always('the registration process ended unexpectedly (out of memory? killed?): '
@@ -272,15 +296,30 @@ class RegistrationStages:
                 self.registration_process.restart()
                 self._start_registration()
             return
+        self._publish_steps(steps)
+
+    def _publish_rest(self, rest_pose, first: _SubjectFrame, chosen: _SubjectFrame) -> None:
+        """The rest pose as soon as it is built, before its held frames are registered,
+        stamped with the first of them: the accumulator and the joint node take frames
+        stamped before it for an older rest pose's."""
+        self._rest_stamp = stamp_ns(first.header)
+        release_freed_memory()
+        self.publish.rest(rest_pose.points, first.header)
+        choice = '' if first is chosen else f' (the most spread-out since {self._rest_stamp * 1e-9:.3f} s)'
+        self.logger.info(f'rest pose built from the cloud at {stamp_ns(chosen.header) * 1e-9:.3f} s{choice} '
+                         f'({len(rest_pose.points)} points, frame {chosen.header.frame_id!r})')
+
+    def _publish_steps(self, steps: list) -> None:
+        """Publish what core.stream.FrameRegistrar's steps say, in their (stamp) order."""
+        for step in steps:
+            self._publish_step(step)
+
+    def _publish_step(self, step) -> None:
+        frame = step.frame
+        stamp, observed = stamp_ns(frame.header), frame.observed
         if step.result is None:
             self._warn_waiting(step, frame)
             return
-        if step.rest_pose_built:
-            self._rest_stamp = stamp
-            release_freed_memory()
-            self.publish.rest(self.rest_pose.points, frame.header)
-            self.logger.info(f'rest pose built from the cloud at {stamp * 1e-9:.3f} s '
-                             f'({len(self.rest_pose.points)} points, frame {frame.header.frame_id!r})')
         result = step.result
         self.last_registration_status = f'frame {result.status}'
         if result.status != STATUS_OK:
@@ -309,7 +348,9 @@ class RegistrationStages:
             self.log.warn('no_rest', f'no rest pose from this cloud: {step.error}')
 
     def _registration_failed(self, item, error) -> None:
-        if self.context_ok():
+        if item is _FLUSH:
+            item = self.frame_registrar.held[0] if self.frame_registrar.held else None
+        if self.context_ok() and item is not None:
             self.log.warn('failed', f'registration of the cloud at {stamp_ns(item.header) * 1e-9:.3f} s failed: '
                                     f'{type(error).__name__}: {error}')
 

@@ -270,11 +270,14 @@ class _Replay:
                 if len(received.registered_at) + len(received.filtered_at) == seen:
                     return streamed_until
         self._wait(lambda: previous in received.filtered_at, self.frame_timeout)
-        # the last registered frame must be in before the window is closed by hand; once a
-        # rest pose exists every frame is registered unless it fails (then nothing comes),
-        # and a busy machine can take seconds per frame
-        self._wait(lambda: previous in received.registered_at,
-                   self.frame_timeout if received.rest is not None else 5.0)
+        # the last registered frame must be in before the window is closed by hand. The
+        # registration node may still hold clouds for the rest pose's choice (it chooses
+        # once they stop coming); once a rest pose exists every frame is registered unless
+        # it fails (then nothing comes), and a busy machine can take seconds per frame
+        holding = int(received.registration.get('clouds_held', 0)) > 0
+        self._wait(lambda: received.rest is not None, self.frame_timeout if holding else 5.0)
+        if received.rest is not None:
+            self._wait(lambda: previous in received.registered_at, self.frame_timeout)
         return time.perf_counter()
 
     def _close_window(self) -> None:
