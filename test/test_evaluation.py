@@ -108,6 +108,21 @@ def test_registration_metric(gt_pair):
     assert 0.01 < evaluate_registration(noisy, gt.stamps, gt)['mean_error_m'] < 0.025
 
 
+def test_registration_is_tied_to_the_surface_in_the_rest_poses_frame(gt_pair):
+    """A rest pose built from frame 10, the frames before it registered backward from it:
+    each point is the material point it was in frame 10. A mix-up in frame 0 is frame 0's
+    error only; tied at frame 0 (no rest points given), every frame would pay for it."""
+    gt = gt_pair[0]
+    chosen = np.random.default_rng(2).choice(gt.surface_points.shape[1], 1500, replace=False)
+    registered = gt.surface_points[:, chosen].copy()
+    registered[0] = registered[0][np.random.default_rng(3).permutation(len(chosen))]   # mixed up
+    result = evaluate_registration(registered, gt.stamps, gt, rest_points=registered[10] + 0.002)
+    assert result['tied_at_frame'] == 10 and result['per_frame_error_m'][0] > 0.1
+    assert max(result['per_frame_error_m'][1:]) < 1e-6
+    tied_first = evaluate_registration(registered, gt.stamps, gt)
+    assert tied_first['tied_at_frame'] == 0 and min(tied_first['per_frame_error_m'][1:]) > 0.1
+
+
 def test_malformed_inputs_are_clear_errors(tmp_path):
     bad = tmp_path / 'bad.json'
     bad.write_text('{"joint_names": ["a"], "parents": [-1]}')

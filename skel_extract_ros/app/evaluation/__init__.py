@@ -56,8 +56,8 @@ def evaluate_outputs(gt: GroundTruth, skeleton_path=None, registered_path=None,
     result = {}
     span = (None, None)
     if registered_path is not None:
-        points, stamps = load_registered(registered_path)
-        result['registration'] = evaluate_registration(points, stamps, gt)
+        points, stamps, rest_points = load_registered(registered_path)
+        result['registration'] = evaluate_registration(points, stamps, gt, rest_points=rest_points)
         span = registration_span(points, stamps)
     if skeleton_path is not None:
         result['joints'] = evaluate_joints(PredictedSkeleton.load(skeleton_path), gt, threshold_m,

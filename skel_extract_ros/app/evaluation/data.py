@@ -129,7 +129,7 @@ def match_frames(pred_stamps: np.ndarray, gt_stamps: np.ndarray, tolerance_s: fl
 
 
 def load_registered(path) -> tuple:
-    """(points (F, M, 3), stamps (F,)) from a registered.npz."""
+    """(points (F, M, 3), stamps (F,), rest points (M, 3) or None) from a registered.npz."""
     path = Path(path)
     if not path.is_file():
         raise EvaluationError(f'registered points {path} do not exist')
@@ -143,4 +143,5 @@ def load_registered(path) -> tuple:
     if points.ndim != 3 or points.shape[2] != 3 or points.shape[0] != stamps.shape[0]:
         raise EvaluationError(f'{path}: points must be F x M x 3 with one stamp per frame, got '
                               f'{points.shape} and {stamps.shape}')
-    return points, stamps
+    rest = np.asarray(data['rest_points'], np.float64) if 'rest_points' in data else None
+    return points, stamps, rest

@@ -53,6 +53,8 @@ def score_lines(result: dict, per_joint: bool) -> list:
                      f'drift {drift or "-"}  coverage {r["coverage"]:.2f}  non-finite '
                      f'{100 * r["nonfinite_fraction"]:.1f} %  ({r["n_points"]} points, {r["n_frames"]} frames'
                      + (f', scored from frame {r["n_frames_before_start"]}' if r['n_frames_before_start'] else '')
+                     + (f', tied to the surface at frame {r["tied_at_frame"]}'
+                        if r.get('tied_at_frame', r['n_frames_before_start']) != r['n_frames_before_start'] else '')
                      + ')')
         parts = sorted(r['per_part'].items(), key=lambda kv: -kv[1]['mean_error_m'])
         if parts:
