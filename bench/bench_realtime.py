@@ -8,8 +8,9 @@ For each clip (default: the five of bench/README.md's node tables: walk_normal, 
 cow, wave-both-hands_active, wave-left-hand_normal; `--only` picks among every clip of
 $SKEL_SHARED_DATA as bench_real_motion.py does) 90 frames in the room, rendered as 320x240 depth
 images at 30 Hz (`simulate --scene room --depth-image`, kept in --work); then `skel-extract
-replay --realtime --loop N` as a user runs it, with the accumulator's `window_size` set to
-`--window` (a 3 s bag played N times: a 60-frame window would leave a short tracking time).
+replay --realtime --loop N` as a user runs it, with the accumulator's `window_size` and the
+rest pose's `choice_frames` set to `--window` (a 3 s bag played N times: a 60-frame window
+would leave a short tracking time).
 `human` in `--only` is the built-in human in the room as 1.2 MB clouds, 300 frames (10 s),
 on the defaults (the 60-frame window), played `--loop` times.
 
@@ -86,7 +87,9 @@ def main(argv=None) -> int:
     work = args.work or Path(tempfile.mkdtemp(prefix='bench_realtime_'))
     work.mkdir(parents=True, exist_ok=True)
     window = work / f'window_{args.window}.yaml'
-    window.write_text(f'accumulator_node:\n  ros__parameters:\n    window_size: {args.window}\n')
+    # the rest pose chosen within the window too (choice_frames 60 by default: the window's)
+    window.write_text(f'accumulator_node:\n  ros__parameters:\n    window_size: {args.window}\n'
+                      f'registration_node:\n  ros__parameters:\n    rest_pose:\n      choice_frames: {args.window}\n')
     clips = [name for name in args.only.split(',') if name and name != 'human']
     rows = [(name, source_args, window, False) for name, source_args in (subjects(clips) if clips else [])
             if name != 'samba']                                  # a mesh sequence: no joints to track

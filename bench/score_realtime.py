@@ -97,7 +97,8 @@ def score(bag: Path, out: Path, from_pass: int = 3, bounce: bool = False) -> dic
     result['nearest_cm'] = (100 * float(np.median(nearest)), 100 * float(np.percentile(nearest, 95)))
     registered = np.load(out / 'registered.npz')
     tracking = registered['stamps'] >= gt.stamps[0] + from_pass * pass_s
-    scores = evaluate_registration(registered['points'], registered['stamps'], gt)
+    scores = evaluate_registration(registered['points'], registered['stamps'], gt,
+                                   rest_points=registered['rest_points'] if 'rest_points' in registered else None)
     per_frame = np.asarray(scores['per_frame_error_m'])
     result['registration'] = (len(per_frame), int(tracking.sum()), 100 * scores['mean_error_m'],
                               100 * per_frame[-tracking.sum():].mean() if tracking.any() else float('nan'))
