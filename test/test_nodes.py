@@ -188,6 +188,32 @@ def test_registration_reset_service_builds_a_new_rest_pose(ros, arm):
     assert stamps_of(rests)[-1] == arm.stamps_ns[3]
 
 
+def test_a_registration_process_dying_under_the_choice_starts_a_new_one_and_a_new_choice(ros, arm):
+    """The registration process dies while clouds are held for the rest pose's choice, and
+    the clouds stop: the choice made once they stopped (the rest pose published, the held
+    clouds about to be registered) says so, starts a new process and a new choice, and the
+    next clouds are registered from it."""
+    node = small_registration(ros, **{'rest_pose.choice_frames': 60})
+    rests = ros.listen('rest_points', PointCloud2, LATCHED_QOS)
+    registered = ros.listen('registered_points', PointCloud2, STREAM_QOS)
+    pub = ros.publisher('points', PointCloud2, QoSProfile(depth=10))
+    ros.wait_matched(pub)
+
+    def send(i):
+        pub.publish(cloud(arm.clouds[i], arm.stamps_ns[i]))
+        ros.wait(lambda: node.stages.processed == i + 1, what=f'cloud {i} taken')
+    send(0)
+    send(1)
+    os.kill(node.stages.registration_process.pid, signal.SIGKILL)
+    ros.wait(lambda: any('registration process ended' in m for m in ros.warnings('registration_node')),
+             what='the line about the dead child, once the clouds stopped')
+    assert registered == [] and node.stages.frame_registrar.held == []
+    send(2)
+    send(3)
+    ros.wait(lambda: len(registered) == 2, what='the next two clouds registered from a new choice')
+    assert stamps_of(registered) == list(arm.stamps_ns[2:4]) and stamps_of(rests)[-1] == arm.stamps_ns[2]
+
+
 def test_registration_runs_nicer_once_the_first_window_is_learned_and_survives_its_process_dying(ros, arm):
     node = small_registration(ros, registration_niceness=7)
     rests = ros.listen('rest_points', PointCloud2, LATCHED_QOS)

@@ -274,7 +274,7 @@ class RegistrationStages:
 
     def _register_frame(self, frame) -> None:
         if frame is _FLUSH:
-            self._publish_steps(self.frame_registrar.flush())
+            self._publish_steps(self._surviving_the_child(self.frame_registrar.flush))
             return
         self._last_subject_s = time.monotonic()
         if frame.epoch != self._registration_epoch:
@@ -287,16 +287,22 @@ class RegistrationStages:
         if self.rest_pose is None and self.rest_pose_process.while_waiting(somebody):
             self.logger.info(f'nobody in view for {REST_POSE_IDLE_RELEASE_S:.0f} s: the rest pose process ends '
                              'until something moves')
+        live_start = self._live_start(stamp)
+        self._publish_steps(self._surviving_the_child(
+            lambda: self.frame_registrar(observed, frame.segmentation, live_start, frame)))
+
+    def _surviving_the_child(self, registrar_call) -> list:
+        """registrar_call()'s FrameSteps, or none when the registration process died under
+        it: a new process and a new rest pose (the frames held or registered so far are lost)."""
         try:
-            steps = self.frame_registrar(observed, frame.segmentation, self._live_start(stamp), frame)
+            return registrar_call()
         except ChildProcessDied:
             if self.context_ok():
                 self.log.always('the registration process ended unexpectedly (out of memory? killed?): '
                                 'starting a new one and a new rest pose')
                 self.registration_process.restart()
                 self._start_registration()
-            return
-        self._publish_steps(steps)
+            return []
 
     def _publish_rest(self, rest_pose, first: _SubjectFrame, chosen: _SubjectFrame) -> None:
         """The rest pose as soon as it is built, before its held frames are registered,
@@ -348,11 +354,11 @@ class RegistrationStages:
             self.log.warn('no_rest', f'no rest pose from this cloud: {step.error}')
 
     def _registration_failed(self, item, error) -> None:
-        if item is _FLUSH:
-            item = self.frame_registrar.held[0] if self.frame_registrar.held else None
-        if self.context_ok() and item is not None:
-            self.log.warn('failed', f'registration of the cloud at {stamp_ns(item.header) * 1e-9:.3f} s failed: '
-                                    f'{type(error).__name__}: {error}')
+        if not self.context_ok():
+            return
+        what = ('the rest pose\'s choice among the held clouds' if item is _FLUSH
+                else f'registration of the cloud at {stamp_ns(item.header) * 1e-9:.3f} s')
+        self.log.warn('failed', f'{what} failed: {type(error).__name__}: {error}')
 
     def _finished(self) -> None:
         with self._count_lock:
