@@ -6,6 +6,7 @@ import pytest
 
 from skel_extract_ros.core.registration import STATUS_OK, RegistrationParams
 from skel_extract_ros.core.rest_pose import RestPoseError, RestPoseParams, spread
+from skel_extract_ros.core.sequence import SequenceRegistration
 from skel_extract_ros.core.stream import (ORDER_NEW_FRAME_ID, ORDER_REPEATED, ORDER_WENT_BACK, WAIT_FEW_POINTS,
                                           WAIT_NOBODY, WAIT_REST_POSE_FAILED, FrameRegistrar, StampOrder,
                                           SubjectFinder, split_layout)
@@ -60,12 +61,16 @@ def test_the_step_waits_for_somebody_then_builds_the_rest_pose_and_registers(wal
 
 
 @pytest.fixture(scope='module')
-def opening():
+def opening_clouds():
     """The whole body, in view from the second frame, opening up over the first frames
     (the feet touch the image border from the sixth)."""
-    sequence = generate_sequence('human', 10, seed=3, progress=False)
+    return generate_sequence('human', 10, seed=3, progress=False).clouds
+
+
+@pytest.fixture(scope='module')
+def opening(opening_clouds):
     finder = SubjectFinder()
-    return [finder(*split_layout(cloud)) for cloud in sequence.clouds]
+    return [finder(*split_layout(cloud)) for cloud in opening_clouds]
 
 
 def _distance_to(points, cloud):
@@ -73,7 +78,8 @@ def _distance_to(points, cloud):
     return cKDTree(cloud).query(points)[0]
 
 
-def test_the_rest_pose_is_the_most_spread_out_held_frame_and_the_held_frames_are_registered_both_ways(opening):
+def test_the_rest_pose_is_the_most_spread_out_held_frame_and_the_held_frames_are_registered_both_ways(
+        opening, opening_clouds):
     """The body opens up over the first frames: the frames from the first one in view are
     held, the rest pose is built from the most spread-out of those wholly in view (not the
     first), and every
@@ -97,6 +103,10 @@ def test_the_rest_pose_is_the_most_spread_out_held_frame_and_the_held_frames_are
     # after the held frames: one frame, one answer, from the last held frame
     later, = answered[held[-1] + 1]
     assert later.frame == held[-1] + 1 and later.status == STATUS_OK
+    # `run`'s registration makes the same choice and says which frame it was
+    sequence = SequenceRegistration(RegistrationParams(), RestPoseParams(n_points=N_POINTS, choice_frames=8))
+    sequence.register(opening_clouds)
+    assert sequence.rest_frame_ == chosen[0] and (sequence.statuses_[held] == STATUS_OK).all()
 
 
 def test_flush_chooses_from_the_frames_held_so_far_and_a_failed_choice_starts_over(opening):

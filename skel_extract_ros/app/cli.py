@@ -176,7 +176,9 @@ def _cmd_run(args) -> int:
     recaptures = int(registration.recaptured_.sum())
     print(f'registered {len(registered)} frames of {registered.shape[1]} points -> {out / "registered.npz"}'
           f'  ({", ".join(f"{n} {status}" for status, n in sorted(counts.items()))}'
-          f'{f"; {recaptures} lost parts recaptured" if recaptures else ""})')
+          f'{f"; {recaptures} lost parts recaptured" if recaptures else ""}; '
+          f'rest pose from frame {registration.rest_frame_}, the most spread-out of up to '
+          f'{registration.rest_params.choice_frames} from the first usable)')
     with_subject = subject_points > 0
     several = max((s.n_moving_regions for s in segments), default=0)
     print(f'subject found in {with_subject.sum()} of {len(segments)} frames'

@@ -42,6 +42,7 @@ class SequenceRegistration:
 
     Parameters are dataclasses (see their docstrings). Frames before the rest pose get NaN
     points and status 'empty'. Attributes set by `register` (sklearn style): rest_pose_,
+    rest_frame_ (the index of the frame it was built from),
     statuses_ (F,), sigma2_ (F,), iterations_ (F,), recaptured_ (F,) parts recaptured, times_, segmentation_ (F,) Segmentation
     summaries (status, subject points, background fraction, moving regions; masks dropped),
     and with keep_observed the preprocessed frames observed_ (list of (N_t, 3) float32).
@@ -71,7 +72,7 @@ class SequenceRegistration:
         finder = SubjectFinder(self.segmentation_params, self.preprocess_params)
         registrar = FrameRegistrar(self.params, self.rest_params)
         self.times_ = StepTimes()
-        self.rest_pose_ = None
+        self.rest_pose_, self.rest_frame_ = None, None
         self.segmentation_ = []
         self.observed_ = []
         M = self.rest_params.n_points
@@ -82,7 +83,7 @@ class SequenceRegistration:
             for step in steps:
                 self.times_.rest_pose += step.seconds_rest_pose
                 if step.rest_pose_built:
-                    self.rest_pose_ = registrar.rest_pose
+                    self.rest_pose_, self.rest_frame_ = registrar.rest_pose, step.frame
                     self.registration_ = registrar.registration.registration
                 result = step.result
                 if result is None:
