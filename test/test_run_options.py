@@ -99,6 +99,19 @@ def test_replay_realtime_publishes_like_a_camera_and_reports_what_it_delivered(t
     assert done.returncode == 2 and '--realtime needs a --rate above 0' in done.stderr
 
 
+def test_replay_realtime_of_a_bag_shorter_than_the_choice_waits_for_the_held_clouds(tmp_path, arm_bag):
+    """The defaults' choice among 60 clouds, a 16-cloud bag driven like a camera: the
+    registration node holds every cloud, chooses once they stop coming, registers them; the
+    replay waits for that (it does not end while the node reports held clouds) and the
+    recording has the rest pose and the registered clouds with their joints."""
+    bag, _ = arm_bag
+    done = run_cli_private_domain(73, 'replay', bag, '--out', tmp_path / 'out', '--realtime', '--rate', '0.5')
+    assert done.returncode == 0, done.stderr[-2000:]
+    counts = topic_counts(tmp_path / 'out' / 'output.mcap')
+    assert counts['/rest_points'] == 1 and counts['/registered_points'] >= 8, counts
+    assert counts['/skeleton/joints'] >= counts['/registered_points'], counts
+
+
 def _header_stamps(recording, topic) -> set:
     from rosbags.highlevel import AnyReader
     with AnyReader([recording]) as reader:

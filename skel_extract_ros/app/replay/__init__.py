@@ -262,13 +262,19 @@ class _Replay:
             if self.progress:
                 self.progress(index + 1, n_frames * self.loops)
         if self.realtime:
-            # frames may have been skipped, the last one too: wait until the nodes go quiet
+            # frames may have been skipped, the last one too: wait until the nodes go quiet,
+            # and, with no rest pose yet, for one: the registration node holds clouds for the
+            # rest pose's choice and chooses once they stop coming, then registers them
             streamed_until = time.perf_counter()
             while True:
+                had_rest = received.rest is not None
                 seen = len(received.registered_at) + len(received.filtered_at)
                 self._wait(lambda: len(received.registered_at) + len(received.filtered_at) > seen, 3.0)
-                if len(received.registered_at) + len(received.filtered_at) == seen:
+                if len(received.registered_at) + len(received.filtered_at) > seen:
+                    continue
+                if had_rest or not self._wait(lambda: received.rest is not None, 5.0):
                     return streamed_until
+                # a rest pose came after the clouds stopped: its held clouds are registered next
         self._wait(lambda: previous in received.filtered_at, self.frame_timeout)
         # the last registered frame must be in before the window is closed by hand. The
         # registration node may still hold clouds for the rest pose's choice (it chooses
