@@ -16,7 +16,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .parameters import INF, parameter, validate
-from .point_sets import median_spacing
+from .point_sets import finite_rows, median_spacing
 
 
 class RestPoseError(ValueError):
@@ -55,7 +55,7 @@ def spread(points: np.ndarray) -> float:
     the legs together) are tied, and the ties hold them together when they later part; of
     a few frames of a subject, the most spread-out has the fewest such contacts."""
     points = np.asarray(points, dtype=np.float64)
-    points = points[np.isfinite(points).all(axis=1)]
+    points = points[finite_rows(points)]
     if len(points) == 0:
         return 0.0
     return float(np.sqrt(np.mean(np.sum((points - points.mean(axis=0)) ** 2, axis=1))))
@@ -76,7 +76,7 @@ class RestPose:
         import open3d as o3d  # lazy: the accumulator and joint nodes never load it
         params = params or RestPoseParams()
         points = np.asarray(points, dtype=np.float64)
-        points = points[np.isfinite(points).all(axis=1)]
+        points = points[finite_rows(points)]
         if len(points) < max(100, params.n_points // 10):
             raise RestPoseError(f'the frame has only {len(points)} usable points; '
                                 'a rest pose needs at least a few hundred')
@@ -111,7 +111,7 @@ class RestPose:
         sampling (used to measure what the reconstruction buys)."""
         import open3d as o3d  # lazy: the accumulator and joint nodes never load it
         points = np.asarray(points, dtype=np.float64)
-        points = points[np.isfinite(points).all(axis=1)]
+        points = points[finite_rows(points)]
         if len(points) < n_points:
             raise RestPoseError(f'the first frame has {len(points)} points, fewer than M = {n_points}')
         cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))

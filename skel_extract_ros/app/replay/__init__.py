@@ -263,8 +263,7 @@ class _Replay:
                 self.progress(index + 1, n_frames * self.loops)
         if self.realtime:
             # frames may have been skipped, the last one too: wait until the nodes go quiet,
-            # and, with no rest pose yet, for one: the registration node holds clouds for the
-            # rest pose's choice and chooses once they stop coming, then registers them
+            # and, with no rest pose yet, for one (then its held clouds are registered)
             streamed_until = time.perf_counter()
             while True:
                 had_rest = received.rest is not None
@@ -272,19 +271,23 @@ class _Replay:
                 self._wait(lambda: len(received.registered_at) + len(received.filtered_at) > seen, 3.0)
                 if len(received.registered_at) + len(received.filtered_at) > seen:
                     continue
-                if had_rest or not self._wait(lambda: received.rest is not None, 5.0):
+                if had_rest or not self._rest_pose_chosen():
                     return streamed_until
-                # a rest pose came after the clouds stopped: its held clouds are registered next
         self._wait(lambda: previous in received.filtered_at, self.frame_timeout)
-        # the last registered frame must be in before the window is closed by hand. The
-        # registration node may still hold clouds for the rest pose's choice (it chooses
-        # once they stop coming); once a rest pose exists every frame is registered unless
-        # it fails (then nothing comes), and a busy machine can take seconds per frame
-        holding = int(received.registration.get('clouds_held', 0)) > 0
-        self._wait(lambda: received.rest is not None, self.frame_timeout if holding else 5.0)
-        if received.rest is not None:
+        # the last registered frame must be in before the window is closed by hand; once a
+        # rest pose exists every frame is registered unless it fails (then nothing comes),
+        # and a busy machine can take seconds per frame
+        if self._rest_pose_chosen():
             self._wait(lambda: previous in received.registered_at, self.frame_timeout)
         return time.perf_counter()
+
+    def _rest_pose_chosen(self) -> bool:
+        """Wait for a rest pose once the clouds stopped; False if none came. The registration
+        node may hold clouds for the rest pose's choice and choose once they stop coming:
+        up to frame_timeout while it reports held clouds, else 5 s (nobody in view)."""
+        received = self.received
+        holding = int(received.registration.get('clouds_held', 0)) > 0
+        return self._wait(lambda: received.rest is not None, self.frame_timeout if holding else 5.0)
 
     def _close_window(self) -> None:
         """No structure yet (a bag shorter than the window): once the accumulator holds every
