@@ -6,8 +6,8 @@ For each real clip (the subjects of bench_real_motion.py; the bags are simulated
 or reused from it), the registration runs once as `skel-extract run` runs it; then Steps 2
 and 3 run twice on the same rest points and observed points: on the registered points, and
 on the true trajectories of the material points they started on (each registered point
-tied to the true surface at the registration's first frame and carried by its bone: what
-a perfect registration would give). Both are learned on all the frames (window_size larger
+tied to the true surface in the rest pose's frame and carried by its bone: what a
+perfect registration would give). Both are learned on all the frames (window_size larger
 than the clip) and scored with the yardstick (skel_extract_ros.app.evaluation). The gap between
 the two rows is what the registration costs the joints; what is left on the perfect row is
 the structure's and the joint placement's.
@@ -45,8 +45,12 @@ def joint_scores(bag: Path) -> dict:
     gt = GroundTruth.load(bag / 'gt.npz')
     first = int(np.flatnonzero(np.isfinite(registered).all(axis=(1, 2)))[0])
     _, gt_index = match_frames(stamps, gt.stamps)
+    # tied in the rest pose's frame, where the registered points are the rest points: the
+    # frames before it were registered backward from it and may have slid
+    rest_frame = pipeline.registration.rest_frame_
     perfect = registered.astype(np.float64)
-    perfect[first:], _, _ = _material_trajectories(perfect[first], gt, gt_index[first:])
+    perfect[first:], _, _ = _material_trajectories(perfect[rest_frame], gt, gt_index[first:],
+                                                   anchor=rest_frame - first)
     scores = {}
     for name, points in (('registered', registered), ('perfect', perfect)):
         result = pipeline.extract(points)
