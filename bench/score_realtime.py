@@ -30,7 +30,7 @@ from std_msgs.msg import String
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from skel_extract_ros.app.evaluation import (GroundTruth, PredictedSkeleton, evaluate_joints,  # noqa: E402
-                                         evaluate_registration, match_frames)
+                                         evaluate_registration, load_registered, match_frames)
 from skel_extract_ros.app.replay import looped_stamp  # noqa: E402
 
 
@@ -95,10 +95,9 @@ def score(bag: Path, out: Path, from_pass: int = 3, bounce: bool = False) -> dic
     _, gt_index = match_frames(pred.stamps, gt.stamps)
     nearest = np.linalg.norm(pred.positions[:, :, None, :] - gt.joints[gt_index][:, None, :, :], axis=-1).min(axis=2)
     result['nearest_cm'] = (100 * float(np.median(nearest)), 100 * float(np.percentile(nearest, 95)))
-    registered = np.load(out / 'registered.npz')
-    tracking = registered['stamps'] >= gt.stamps[0] + from_pass * pass_s
-    scores = evaluate_registration(registered['points'], registered['stamps'], gt,
-                                   rest_points=registered['rest_points'] if 'rest_points' in registered else None)
+    points, stamps, rest_points = load_registered(out / 'registered.npz')
+    tracking = stamps >= gt.stamps[0] + from_pass * pass_s
+    scores = evaluate_registration(points, stamps, gt, rest_points=rest_points)
     per_frame = np.asarray(scores['per_frame_error_m'])
     result['registration'] = (len(per_frame), int(tracking.sum()), 100 * scores['mean_error_m'],
                               100 * per_frame[-tracking.sum():].mean() if tracking.any() else float('nan'))
