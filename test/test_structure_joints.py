@@ -233,6 +233,27 @@ def test_medial_anchor_moves_the_surface_centroid_to_the_bone_axis(half_width, h
     assert np.linalg.norm(anchor - axis_point) < np.linalg.norm(centroid[0] - axis_point)
 
 
+@pytest.mark.parametrize('tilt_deg', [-20.0, -40.0])
+def test_medial_anchor_at_the_end_of_a_bone_turned_towards_the_camera(tilt_deg):
+    # a joint's anchor lies at its bone's end, so the whole section is on one side of it;
+    # a bone turned towards the camera comes nearer along that section, which must not pull
+    # the section's centre in front of the bone's axis (a few hundred points, as on a limb)
+    half_width, tilt = 0.05, np.radians(tilt_deg)
+    along_bone = _visible_section(half_width, half_width, n=300)
+    along_bone = along_bone[along_bone[:, 0] > 0.0]               # the bone starts at the joint
+    turn = np.array([[np.cos(tilt), 0.0, -np.sin(tilt)], [0.0, 1.0, 0.0], [np.sin(tilt), 0.0, np.cos(tilt)]])
+    axis_origin, axis = np.array([0.0, 0.0, 1.5]), turn[:, 0]
+    points = (along_bone - axis_origin) @ turn.T + axis_origin
+    labels = np.zeros(len(points), dtype=int)
+    near_joint = np.abs((points - axis_origin) @ axis) < 0.01
+    surface = points[near_joint].mean(axis=0, keepdims=True)      # the boundary centroid: on the surface
+    ray = surface[0] / np.linalg.norm(surface[0])
+    # where the camera ray through that centroid crosses the bone's axis (both in the x-z plane)
+    depth_on_axis = np.linalg.lstsq(np.column_stack([ray, -axis]), axis_origin, rcond=None)[0][0]
+    anchor = medial_anchors(labels, np.array([-1]), points, surface, (0.0, 0.0, 0.0))[0]
+    assert surface[0] @ ray < depth_on_axis - 0.5 * half_width
+    assert abs(anchor @ ray - depth_on_axis) < 0.25 * half_width
+
 def test_medial_anchor_keeps_end_on_bones_and_never_moves_towards_the_camera():
     points = _visible_section(0.05, 0.05)
     labels = np.zeros(len(points), dtype=int)

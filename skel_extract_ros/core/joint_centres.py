@@ -150,11 +150,13 @@ def medial_anchors(labels, parents, rest, anchors, camera_location, min_section_
     `min_section_points` points. One camera samples only its front half: across the bone
     (perpendicular to the axis and the ray) the section spans [middle - a, middle + a]
     (2nd-98th percentile), and an elliptic section with its depth axis along the ray gives
-    depth(s) = centre - b sqrt(1 - (s - middle)^2 / a^2) for every visible point; centre and
-    half-depth b come from one linear least-squares fit, so a flat section (a torso) is not
-    taken for a round one. Anchors only move away from the camera and by at most a. Bones
-    seen end-on (axis along the ray) and sections not clearly in front of the camera keep
-    their anchor.
+    depth(s, u) = centre + g u - b sqrt(1 - (s - middle)^2 / a^2) for every visible point, u
+    its offset along the axis from the anchor; centre, slope g and half-depth b come from
+    one linear least-squares fit, so a flat section (a torso) is not taken for a round one,
+    and a bone turned towards or away from the camera, whose section lies on one side of the
+    anchor at its end, does not shift the centre by its slope. Anchors only move away from
+    the camera and by at most a. Bones seen end-on (axis along the ray) and sections not
+    clearly in front of the camera keep their anchor.
     """
     camera = np.asarray(camera_location, dtype=np.float64)
     result = anchors.copy()
@@ -184,10 +186,11 @@ def medial_anchors(labels, parents, rest, anchors, camera_location, min_section_
         # model does not hold
         if half_width <= 0 or len(section) < 5 or depth.min() <= half_width:
             continue
-        # depth = centre_depth - half_depth * sqrt(1 - (across - middle)^2 / half_width^2):
-        # linear in (centre_depth, half_depth), exact for a round or elliptic section
+        # depth = centre_depth + slope * along_axis - half_depth * sqrt(1 - (across - middle)^2
+        # / half_width^2): linear in (centre_depth, slope, half_depth), exact for a round or
+        # elliptic section
         profile = np.sqrt(np.clip(1.0 - ((across - middle) / half_width) ** 2, 0.0, 1.0))
-        design = np.column_stack([np.ones_like(profile), -profile])
+        design = np.column_stack([np.ones_like(profile), (section - anchor) @ axis, -profile])
         centre_depth = float(np.linalg.lstsq(design, depth, rcond=None)[0][0])
         shift = np.clip(centre_depth - (anchor - camera) @ ray, 0.0, half_width)
         result[bone] = anchor + shift * ray
