@@ -10,7 +10,12 @@ tied to the true surface in the rest pose's frame and carried by its bone: what 
 perfect registration would give). Both are learned on all the frames (window_size larger
 than the clip) and scored with the yardstick (skel_extract_ros.app.evaluation). The gap between
 the two rows is what the registration costs the joints; what is left on the perfect row is
-the structure's and the joint placement's.
+the structure's and the joint placement's. Two more rows split the gap: each skeleton
+(bones, joints and weights) fitted frame by frame to the other's motion, as `run` fits a
+learned skeleton to the frames after its window (core.live.LiveJointTracker on every
+frame): *registered skeleton, perfect motion* is what the skeleton learned on the
+registration costs; *perfect skeleton, registered motion* is what the registration's
+frames cost a skeleton that is right.
 """
 from __future__ import annotations
 
@@ -28,14 +33,18 @@ sys.path.insert(0, str(REPO / 'bench'))
 from bench_real_motion import half, simulate_and_run, subjects  # noqa: E402
 from skel_extract_ros.codecs.bag import read_cloud_frames, select_cloud_topic  # noqa: E402
 from skel_extract_ros.core.growth import GrowthSchedule  # noqa: E402
+from skel_extract_ros.core.live import LiveJointTracker  # noqa: E402
 from skel_extract_ros.core.pipeline import SkeletonPipeline  # noqa: E402
 from skel_extract_ros.app.evaluation import (GroundTruth, PredictedSkeleton, evaluate_joints,  # noqa: E402
                                          match_frames, registration_span)
 from skel_extract_ros.app.evaluation.registration import _material_trajectories  # noqa: E402
 
 
+SOURCES = ('registered', 'perfect', 'registered skeleton, perfect motion', 'perfect skeleton, registered motion')
+
+
 def joint_scores(bag: Path) -> dict:
-    """{'registered': JointReport, 'perfect': JointReport} for one bag."""
+    """{source: JointReport} for one bag, the sources as SOURCES."""
     topic = select_cloud_topic(bag)
     frames = list(read_cloud_frames(bag, topic))
     stamps = np.array([f.stamp for f in frames])
@@ -51,12 +60,20 @@ def joint_scores(bag: Path) -> dict:
     perfect = registered.astype(np.float64)
     perfect[first:], _, _ = _material_trajectories(perfect[rest_frame], gt, gt_index[first:],
                                                    anchor=rest_frame - first)
-    scores = {}
+    span = registration_span(registered, stamps)
+    scores, results = {}, {}
     for name, points in (('registered', registered), ('perfect', perfect)):
-        result = pipeline.extract(points)
+        result = results[name] = pipeline.extract(points)
         skeleton = PredictedSkeleton(result.model.joint_names, list(result.model.parents),
                                      stamps[result.frames], result.joint_positions)
-        scores[name] = evaluate_joints(skeleton, gt, None, *registration_span(points, stamps))
+        scores[name] = evaluate_joints(skeleton, gt, None, *span)
+    for learned_on, fitted_to, points in (('registered', 'perfect', perfect), ('perfect', 'registered', registered)):
+        result = results[learned_on]
+        fit = LiveJointTracker(result.model, pipeline.joint_params)
+        positions = np.stack([fit.track(points[frame]) for frame in result.frames])
+        skeleton = PredictedSkeleton(result.model.joint_names, list(result.model.parents),
+                                     stamps[result.frames], positions)
+        scores[f'{learned_on} skeleton, {fitted_to} motion'] = evaluate_joints(skeleton, gt, None, *span)
     return scores
 
 
@@ -93,7 +110,7 @@ def main() -> int:
             if not (bag / 'gt.npz').is_file():
                 simulate_and_run(name, source_args, scene, args.frames, work)
             scores = joint_scores(bag)
-            for source in ('registered', 'perfect'):
+            for source in SOURCES:
                 print(_row(name, scene, source, scores[source]), flush=True)
     return 0
 

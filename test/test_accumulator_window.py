@@ -1,5 +1,6 @@
 """Windows of the accumulator (sliding, stride, a growing skeleton, a failed window retried) and the joint
 node's buffer (overflow, frames arriving during Alg. 2), on real DDS in process."""
+import dataclasses
 import json
 
 import numpy as np
@@ -291,6 +292,16 @@ def test_the_structure_message_carries_the_rigid_fits_alg_2_starts_from():
     with pytest.raises(ValueError, match='anchor_spread'):
         parse_structure(json.dumps(document))
     document['anchor_spread'] = spread
+    # and the rays along which Alg. 2 takes a joint's depth from its anchor
+    rays = np.array([[0.0, 0.0, 1.0]] + [[0.0, 0.6, 0.8]] * (structure.n_bones - 1))
+    with_rays = structure_document(dataclasses.replace(structure, depth_rays=rays), T0, stamps,
+                                   'camera_depth_optical_frame')
+    assert np.array_equal(parse_structure(json.dumps(with_rays))['depth_rays'], rays)
+    document['depth_rays'] = rays[:-1].tolist()
+    with pytest.raises(ValueError, match='depth_rays'):
+        parse_structure(json.dumps(document))
+    document.pop('depth_rays')
+    assert parse_structure(json.dumps(document))['depth_rays'] is None            # not sent: the motion's depth
     document['rotations'] = document['rotations'][:-1]          # one key frame short
     with pytest.raises(ValueError, match='malformed'):
         parse_structure(json.dumps(document))

@@ -1,4 +1,5 @@
 """Skeletal structure (Sec. 5) and joint estimation (Sec. 6) on exact hand-made cases."""
+import dataclasses
 import itertools
 
 import numpy as np
@@ -227,7 +228,9 @@ def test_medial_anchor_moves_the_surface_centroid_to_the_bone_axis(half_width, h
     centroid = points.mean(axis=0, keepdims=True)
     axis_point = np.array([0.0, 0.0, 1.5])
     assert centroid[0, 2] - 1.5 < -0.5 * half_depth          # the paper's c~ sits in front
-    anchor = medial_anchors(labels, np.array([-1]), points, centroid, (0.0, 0.0, 0.0))[0]
+    anchors, rays = medial_anchors(labels, np.array([-1]), points, centroid, (0.0, 0.0, 0.0))
+    anchor = anchors[0]
+    np.testing.assert_allclose(rays[0], centroid[0] / np.linalg.norm(centroid[0]))   # its depth was measured
     assert abs(anchor[2] - 1.5) < 0.1 * half_width + 0.002
     assert np.linalg.norm(anchor[:2] - centroid[0, :2]) < 1e-3  # moved along the ray only
     assert np.linalg.norm(anchor - axis_point) < np.linalg.norm(centroid[0] - axis_point)
@@ -250,7 +253,7 @@ def test_medial_anchor_at_the_end_of_a_bone_turned_towards_the_camera(tilt_deg):
     ray = surface[0] / np.linalg.norm(surface[0])
     # where the camera ray through that centroid crosses the bone's axis (both in the x-z plane)
     depth_on_axis = np.linalg.lstsq(np.column_stack([ray, -axis]), axis_origin, rcond=None)[0][0]
-    anchor = medial_anchors(labels, np.array([-1]), points, surface, (0.0, 0.0, 0.0))[0]
+    anchor = medial_anchors(labels, np.array([-1]), points, surface, (0.0, 0.0, 0.0))[0][0]
     assert surface[0] @ ray < depth_on_axis - 0.5 * half_width
     assert abs(anchor @ ray - depth_on_axis) < 0.25 * half_width
 
@@ -259,13 +262,16 @@ def test_medial_anchor_keeps_end_on_bones_and_never_moves_towards_the_camera():
     labels = np.zeros(len(points), dtype=int)
     end_on = np.column_stack([points[:, 1], points[:, 2] - 1.5, points[:, 0] + 1.5])  # axis along the ray
     anchor = end_on.mean(axis=0, keepdims=True)
-    assert np.allclose(medial_anchors(labels, np.array([-1]), end_on, anchor, (0, 0, 0)), anchor)
+    kept, rays = medial_anchors(labels, np.array([-1]), end_on, anchor, (0, 0, 0))
+    assert np.allclose(kept, anchor) and not rays.any()           # no section seen: no depth measured
     behind = np.array([[0.0, 0.0, 1.6]])                          # already behind the axis
-    assert np.allclose(medial_anchors(labels, np.array([-1]), points, behind, (0, 0, 0)), behind)
+    kept, rays = medial_anchors(labels, np.array([-1]), points, behind, (0, 0, 0))
+    assert np.allclose(kept, behind) and np.allclose(np.linalg.norm(rays, axis=1), 1.0)
     # a camera_location that does not fit the cloud (the section surrounds it): left alone
     around_camera = points - [0.0, 0.0, 1.5]
     anchor = around_camera.mean(axis=0, keepdims=True)
-    assert np.allclose(medial_anchors(labels, np.array([-1]), around_camera, anchor, (0, 0, 0)), anchor)
+    kept, rays = medial_anchors(labels, np.array([-1]), around_camera, anchor, (0, 0, 0))
+    assert np.allclose(kept, anchor) and not rays.any()
 
 
 def test_surface_anchors_are_the_paper_boundary_centroids():
@@ -403,6 +409,53 @@ def test_a_hinge_seen_along_its_axis_is_fixed_across_it_and_anchored_along_it():
     assert evidence.fixed_directions[1] == 2 and evidence.fixed[1]
     assert 0.6 < evidence.confidence[1] < 0.7
 
+
+
+def _hinge_across_the_ray(pivot, n_frames=30):
+    """Bone 1 turning about the x axis through pivot (3,) (across a camera at the origin
+    looking along +z), bone 0 still: rotations (F, 2, 3, 3), translations (F, 2, 3)."""
+    angles = 0.8 * np.sin(np.linspace(0.0, 2 * np.pi, n_frames, endpoint=False))
+    turns = Rotation.from_rotvec(np.outer(angles, [1.0, 0.0, 0.0])).as_matrix()
+    rotations = np.stack([np.broadcast_to(np.eye(3), turns.shape), turns], axis=1)
+    translations = np.stack([np.zeros((n_frames, 3)), pivot - turns @ pivot], axis=1)
+    return rotations, translations
+
+
+def test_a_joint_takes_its_depth_from_the_anchor_and_the_rest_from_the_motion():
+    # a hinge bending in depth: its motion fixes the pivot along the camera ray and across
+    # it (not along the hinge axis x); the anchor lies 3 cm behind the pivot and 1 cm along x
+    pivot = np.array([0.0, 0.1, 2.0])
+    rotations, translations = _hinge_across_the_ray(pivot)
+    parents = np.array([-1, 0])
+    anchors = np.array([pivot, pivot + [0.01, 0.0, 0.03]])
+    ray = np.array([0.0, 0.0, 1.0])                                 # the camera's axis, near the anchor's ray
+    by_motion = solve_joints(rotations, translations, parents, anchors, 1e-6)[1]
+    assert np.linalg.norm(by_motion[1:] - pivot[1:]) < 1e-6 and abs(by_motion[0] - anchors[1, 0]) < 1e-6
+    rays = np.array([np.zeros(3), ray])
+    joint = solve_joints(rotations, translations, parents, anchors, 1e-6, depth_rays=rays)[1]
+    assert abs((joint - anchors[1]) @ ray) < 1e-9                   # its depth: the anchor's
+    assert abs(joint[1] - pivot[1]) < 1e-3                           # across the ray and the axis: the motion's
+    assert abs(joint[0] - anchors[1, 0]) < 1e-3                      # along the axis: the anchor's
+    # a zero row (depth not measured) leaves E_Joint all three directions
+    unmeasured = solve_joints(rotations, translations, parents, anchors, 1e-6, depth_rays=np.zeros((2, 3)))
+    np.testing.assert_array_equal(unmeasured[1], by_motion)
+
+
+def test_alg2_keeps_the_measured_depth_unless_told_to_take_the_motions():
+    rest, registered, labels, joint, _ = two_bone_sequence(noise=0.001)
+    structure = extract_structure(rest, registered, StructureParams(n_clusters=12))
+    child = int(np.flatnonzero(structure.parents >= 0)[0])
+    ray = np.array([0.0, 0.6, 0.8])
+    anchors = structure.boundary_centroids.copy()
+    anchors[child] = joint + 0.02 * ray                               # a section centre 2 cm off the pivot
+    rays = np.zeros_like(anchors)
+    rays[child] = ray
+    structure = dataclasses.replace(structure, boundary_centroids=anchors, depth_rays=rays)
+    kept = JointEstimation(JointParams(joint_depth='anchor')).fit(rest, registered, list(registered), structure)
+    assert abs((kept.joints[child] - anchors[child]) @ ray) < 1e-9
+    assert np.linalg.norm(np.cross(kept.joints[child] - joint, ray)) < 4e-3     # across the ray: the pivot
+    moved = JointEstimation(JointParams(joint_depth='motion')).fit(rest, registered, list(registered), structure)
+    assert (anchors[child] - moved.joints[child]) @ ray > 0.01
 
 def test_a_rigid_part_cut_in_two_has_no_fixed_pivot():
     for noise in (0.001, 0.004):

@@ -55,6 +55,7 @@ def structure_document(structure: SkeletalStructure, rest_stamp_ns: int, window_
         'joints': structure.joints.tolist(),
         'boundary_centroids': structure.boundary_centroids.tolist(),
         'anchor_spread': None if structure.anchor_spread is None else structure.anchor_spread.tolist(),
+        'depth_rays': None if structure.depth_rays is None else structure.depth_rays.tolist(),
         'rotations': structure.rotations.reshape(len(structure.rotations), structure.n_bones, 9).tolist(),
         'translations': structure.translations.tolist(),
         'joint_ids': [int(i) for i in joint_ids],
@@ -91,6 +92,12 @@ def parse_structure(text: str) -> dict:
                 raise ValueError('anchor_spread does not match the bone count')
         else:
             document['anchor_spread'] = None
+        if document.get('depth_rays') is not None:
+            document['depth_rays'] = np.asarray(document['depth_rays'], dtype=np.float64).reshape(-1, 3)
+            if len(document['depth_rays']) != B:
+                raise ValueError('depth_rays does not match the bone count')
+        else:
+            document['depth_rays'] = None
         document['joint_ids'] = np.asarray(document.get('joint_ids', np.arange(B)), dtype=np.int64)
         if len(document['joint_ids']) != B or len(set(document['joint_ids'].tolist())) != B:
             raise ValueError('joint_ids must be one distinct id per bone')

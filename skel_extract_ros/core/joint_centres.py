@@ -38,12 +38,18 @@ def relative_motion(rotations, translations, parents) -> tuple:
     return child, rotations[:, parent] - rotations[:, child], translations[:, parent] - translations[:, child]
 
 
-def solve_joints(rotations, translations, parents, anchors, eta: float) -> np.ndarray:
+def solve_joints(rotations, translations, parents, anchors, eta: float,
+                 depth_rays: np.ndarray | None = None) -> np.ndarray:
     """(B, 3) rest-frame joints minimising E_Joint (Eq. 12a's joint term) for each bone and
     its parent, with the bone transforms fixed: setting its gradient in c to zero gives
 
     (eta I + sum_t D_t^T D_t) c = eta c~ - sum_t D_t^T (T_p - T_b), D_t = R_p^t - R_b^t.
     Root rows return their anchor.
+
+    depth_rays (B, 3): for a joint with a unit row, its depth along that camera ray is its
+    anchor's (`medial_anchors`' section centre) and E_Joint places it only across the ray,
+    c = c~ + P w with P (3, 2) an orthonormal basis across the ray: (eta I + sum_t P^T D_t^T
+    D_t P) w = -sum_t P^T D_t^T (D_t c~ + T_p - T_b). A zero row: all three directions.
     """
     joints = anchors.copy()
     child, D, dT = relative_motion(rotations, translations, parents)
@@ -52,7 +58,29 @@ def solve_joints(rotations, translations, parents, anchors, eta: float) -> np.nd
     A = eta * np.eye(3) + np.einsum('feji,fejk->eik', D, D)
     b = eta * anchors[child] - np.einsum('feji,fej->ei', D, dT)
     joints[child] = np.linalg.solve(A, b[..., None])[..., 0]
+    if depth_rays is None:
+        return joints
+    rays = np.asarray(depth_rays, dtype=np.float64)[child]
+    across = np.linalg.norm(rays, axis=1) > 0.5
+    if not across.any():
+        return joints
+    edges, rays = np.flatnonzero(across), rays[across]
+    basis = _across(rays)                                                        # (E', 3, 2)
+    D_across = np.einsum('feij,ejk->feik', D[:, edges], basis)                   # (F, E', 3, 2)
+    at_anchor = np.einsum('feij,ej->fei', D[:, edges], anchors[child[edges]]) + dT[:, edges]
+    A = eta * np.eye(2) + np.einsum('feji,fejk->eik', D_across, D_across)
+    b = -np.einsum('feji,fej->ei', D_across, at_anchor)
+    w = np.linalg.solve(A, b[..., None])[..., 0]
+    joints[child[edges]] = anchors[child[edges]] + np.einsum('eij,ej->ei', basis, w)
     return joints
+
+
+def _across(rays: np.ndarray) -> np.ndarray:
+    """(E, 3, 2) orthonormal bases of the planes across unit rays (E, 3)."""
+    helper = np.where(np.abs(rays[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    first = np.cross(rays, helper)
+    first /= np.linalg.norm(first, axis=1, keepdims=True)
+    return np.stack([first, np.cross(rays, first)], axis=2)
 
 
 def boundary_centroids(labels, parents, adjacency, rest) -> tuple:
@@ -141,9 +169,11 @@ def pivot_evidence(rotations, translations, parents, joints, anchor_spread) -> P
     return PivotEvidence(residual, fixed, confidence)
 
 
-def medial_anchors(labels, parents, rest, anchors, camera_location, min_section_points: int = 60) -> np.ndarray:
+def medial_anchors(labels, parents, rest, anchors, camera_location, min_section_points: int = 60) -> tuple:
     """(B, 3) the anchors (B, 3) moved back along their camera rays to the depth of the
-    centre of their bone's cross-section (for the root: of the root bone itself).
+    centre of their bone's cross-section (for the root: of the root bone itself), and (B, 3)
+    the unit camera ray of each anchor whose depth its section gave (zero rows: the anchor
+    kept, its depth not measured).
 
     The cross-section is the slab of the bone's rest points (M, 3) across its main axis
     (first principal direction) around the anchor: 10 % of the bone's length, at least
@@ -160,6 +190,7 @@ def medial_anchors(labels, parents, rest, anchors, camera_location, min_section_
     """
     camera = np.asarray(camera_location, dtype=np.float64)
     result = anchors.copy()
+    rays = np.zeros_like(result)
     for bone in range(len(parents)):  # loop over bones (a few dozen), vectorised over points
         points = rest[labels == bone]
         if len(points) < 10:
@@ -194,4 +225,5 @@ def medial_anchors(labels, parents, rest, anchors, camera_location, min_section_
         centre_depth = float(np.linalg.lstsq(design, depth, rcond=None)[0][0])
         shift = np.clip(centre_depth - (anchor - camera) @ ray, 0.0, half_width)
         result[bone] = anchor + shift * ray
-    return result
+        rays[bone] = ray
+    return result, rays

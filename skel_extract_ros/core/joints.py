@@ -67,6 +67,10 @@ class JointParams:
     truncation_sigmas: float = parameter(4.0, 'truncated E-step: neighbour radius in standard deviations',
                                          1.0, 100.0, live=True)
     min_tau: float = parameter(1e-6, 'lower bound of tau, m^2', 0.0, INF, live=True)
+    joint_depth: str = parameter('anchor', "where a joint's depth along the camera ray comes from: anchor (the "
+                                 "medial anchor's, where its bone's cross-section measured it; E_Joint places "
+                                 'the joint across the ray) or motion (E_Joint in all three directions, the '
+                                 'paper)', choices=('anchor', 'motion'), live=True)
 
     def __post_init__(self):
         validate(self)
@@ -169,6 +173,8 @@ class JointEstimation:
         translations = structure.translations.astype(np.float64).copy()
         joints = structure.joints.copy()
         anchors = structure.boundary_centroids
+        # one camera sees the front of a limb: the motion's depth of a joint is biased towards it
+        depth_rays = structure.depth_rays if p.joint_depth == 'anchor' else None
         # initial weights: the hard labels of Step 2
         influences = np.repeat(structure.labels[:, None], k, axis=1)
         weights = np.zeros((M, k))
@@ -215,7 +221,7 @@ class JointEstimation:
             influences, weights = self._update_weights(rest, rotations, translations, c, z, k)
             deformed = BoneBlocks(rest, influences, weights, parents).update(
                 z, c, rotations, translations, joints, alpha, p.gamma)
-            joints = solve_joints(rotations, translations, parents, anchors, p.eta)
+            joints = solve_joints(rotations, translations, parents, anchors, p.eta, depth_rays)
             tau = np.array([max(s.squared_residual(x) / (3.0 * max(s.Np, 1e-12)), p.min_tau) if s else t
                             for s, x, t in zip(stats, deformed, tau)])
             alpha *= p.alpha_growth

@@ -120,7 +120,10 @@ class SkeletalStructure:
     moved to the medial depth unless anchor_depth is 'surface'; split_evidence: (B,) the
     evidence for each joint (module docstring; inf for the root); anchor_spread: (B,) m, how
     far from its anchor the bone boundary alone leaves each joint (joint_centres.
-    boundary_centroids; None: not known, e.g. a structure from an older message).
+    boundary_centroids; None: not known, e.g. a structure from an older message); depth_rays:
+    (B, 3) the unit camera ray of each anchor whose depth its cross-section measured (zero
+    rows: not measured; None: surface anchors or not known), along which Alg. 2 takes the
+    joint's depth from the anchor (joint_centres.solve_joints, JointParams.joint_depth).
     """
 
     labels: np.ndarray
@@ -131,6 +134,7 @@ class SkeletalStructure:
     boundary_centroids: np.ndarray
     split_evidence: np.ndarray | None = None
     anchor_spread: np.ndarray | None = None
+    depth_rays: np.ndarray | None = None
 
     @property
     def n_bones(self) -> int:
@@ -252,11 +256,14 @@ def split_evidence(residual: np.ndarray, labels: np.ndarray, parents: np.ndarray
 
 
 def _anchors(labels, parents, adjacency, rest, params: 'StructureParams') -> tuple:
-    """The joint anchors c~ (B, 3) as the parameters ask for, and their spread (B,) m."""
+    """The joint anchors c~ (B, 3) as the parameters ask for, their spread (B,) m, and the
+    camera rays (B, 3) of those whose depth a section measured (medial_anchors; None for
+    surface anchors)."""
     anchors, spread = boundary_centroids(labels, parents, adjacency, rest)
+    rays = None
     if params.anchor_depth == 'medial':
-        anchors = medial_anchors(labels, parents, rest, anchors, params.camera_location)
-    return anchors, spread
+        anchors, rays = medial_anchors(labels, parents, rest, anchors, params.camera_location)
+    return anchors, spread, rays
 
 
 def extract_structure(rest: np.ndarray, registered: np.ndarray, params: StructureParams | None = None,
@@ -322,7 +329,7 @@ def extract_structure(rest: np.ndarray, registered: np.ndarray, params: Structur
                     remove = int(b)
                     break
         if remove is None:
-            anchors, _ = _anchors(labels, parents, adjacency, rest, params)
+            anchors = _anchors(labels, parents, adjacency, rest, params)[0]
             joints = solve_joints(rotations, translations, parents, anchors, params.eta)
             for b in np.flatnonzero(parents >= 0):
                 p = parents[b]
@@ -341,6 +348,6 @@ def extract_structure(rest: np.ndarray, registered: np.ndarray, params: Structur
     if B < 2:
         raise StructureError('the motion is too small to separate any bones: every part '
                              'of the subject moves rigidly together')
-    anchors, spread = _anchors(labels, parents, adjacency, rest, params)
+    anchors, spread, rays = _anchors(labels, parents, adjacency, rest, params)
     joints = solve_joints(rotations, translations, parents, anchors, params.eta)
-    return SkeletalStructure(labels, parents, rotations, translations, joints, anchors, evidence, spread)
+    return SkeletalStructure(labels, parents, rotations, translations, joints, anchors, evidence, spread, rays)

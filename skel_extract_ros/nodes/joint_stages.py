@@ -183,7 +183,8 @@ class JointStages:
         found = [document['window_stamps_ns'].index(stamp) for stamp in stamps]
         rotations, translations = document['rotations'][found], document['translations'][found]
         structure = SkeletalStructure(labels, parents, rotations, translations, document['joints'],
-                                      document['boundary_centroids'], anchor_spread=document['anchor_spread'])
+                                      document['boundary_centroids'], anchor_spread=document['anchor_spread'],
+                                      depth_rays=document['depth_rays'])
         if self.provisional_skeleton and self.live_frames == 'camera':
             # Step 2's skeleton, each point on its bone, is tracked while Alg. 2 runs (seconds),
             # so joints come before Alg. 2's; Alg. 2's model then replaces it under the same
