@@ -10,6 +10,12 @@ whose axis points at the camera, a root bone's centre) E_Joint puts the joint th
 `medial_anchors` moves each c~ back along its camera ray to the depth of the bone's
 cross-section centre, fitted to the visible half of that cross-section (see there). The
 paper's plain centroid is anchor_depth='surface'.
+
+Deviation (JointParams.joint_depth='anchor', the default): where a section gave an anchor
+its depth, Alg. 2's E_Joint places the joint only across that camera ray and takes its
+depth from the anchor (`solve_joints`' depth_rays). The registered points of a limb that
+turns stay on its visible side, so the pivot the bones' fitted motion gives lies in front
+of the joint; 'motion' is the paper's solve in all three directions.
 """
 from __future__ import annotations
 

@@ -68,7 +68,7 @@ class JointParams:
                                          1.0, 100.0, live=True)
     min_tau: float = parameter(1e-6, 'lower bound of tau, m^2', 0.0, INF, live=True)
     joint_depth: str = parameter('anchor', "where a joint's depth along the camera ray comes from: anchor (the "
-                                 "medial anchor's, where its bone's cross-section measured it; E_Joint places "
+                                 "medial anchor's, where its bone's cross-section gave one; E_Joint places "
                                  'the joint across the ray) or motion (E_Joint in all three directions, the '
                                  'paper)', choices=('anchor', 'motion'), live=True)
 
@@ -173,7 +173,8 @@ class JointEstimation:
         translations = structure.translations.astype(np.float64).copy()
         joints = structure.joints.copy()
         anchors = structure.boundary_centroids
-        # one camera sees the front of a limb: the motion's depth of a joint is biased towards it
+        # the registration keeps a turning limb's points on its visible side, so the depth the
+        # bones' motion gives a joint lies in front of it; the section's depth does not
         depth_rays = structure.depth_rays if p.joint_depth == 'anchor' else None
         # initial weights: the hard labels of Step 2
         influences = np.repeat(structure.labels[:, None], k, axis=1)
