@@ -61,19 +61,21 @@ def joint_scores(bag: Path) -> dict:
     perfect[first:], _, _ = _material_trajectories(perfect[rest_frame], gt, gt_index[first:],
                                                    anchor=rest_frame - first)
     span = registration_span(registered, stamps)
+
+    def scored(result, positions):
+        skeleton = PredictedSkeleton(result.model.joint_names, list(result.model.parents),
+                                     stamps[result.frames], positions)
+        return evaluate_joints(skeleton, gt, None, *span)
+
     scores, results = {}, {}
     for name, points in (('registered', registered), ('perfect', perfect)):
         result = results[name] = pipeline.extract(points)
-        skeleton = PredictedSkeleton(result.model.joint_names, list(result.model.parents),
-                                     stamps[result.frames], result.joint_positions)
-        scores[name] = evaluate_joints(skeleton, gt, None, *span)
+        scores[name] = scored(result, result.joint_positions)
     for learned_on, fitted_to, points in (('registered', 'perfect', perfect), ('perfect', 'registered', registered)):
         result = results[learned_on]
         fit = LiveJointTracker(result.model, pipeline.joint_params)
         positions = np.stack([fit.track(points[frame]) for frame in result.frames])
-        skeleton = PredictedSkeleton(result.model.joint_names, list(result.model.parents),
-                                     stamps[result.frames], positions)
-        scores[f'{learned_on} skeleton, {fitted_to} motion'] = evaluate_joints(skeleton, gt, None, *span)
+        scores[f'{learned_on} skeleton, {fitted_to} motion'] = scored(result, positions)
     return scores
 
 

@@ -63,6 +63,17 @@ def structure_document(structure: SkeletalStructure, rest_stamp_ns: int, window_
     }
 
 
+def _optional_per_bone(value, key: str, n_bones: int, row_shape: tuple) -> np.ndarray | None:
+    """An optional per-bone array of a structure message: None when not sent (not known),
+    else (B, *row_shape) float64; ValueError when it does not match the bone count."""
+    if value is None:
+        return None
+    array = np.asarray(value, dtype=np.float64).reshape(-1, *row_shape)
+    if len(array) != n_bones:
+        raise ValueError(f'{key} does not match the bone count')
+    return array
+
+
 def parse_structure(text: str) -> dict:
     """Validate a skeleton/structure JSON; labels/parents as int arrays, joints (B, 3).
     Raises ValueError with the reason."""
@@ -86,18 +97,8 @@ def parse_structure(text: str) -> dict:
             raise ValueError('joints / boundary_centroids do not match the bone count')
         document['rotations'] = np.asarray(document['rotations'], dtype=np.float64).reshape(F, B, 3, 3)
         document['translations'] = np.asarray(document['translations'], dtype=np.float64).reshape(F, B, 3)
-        if document.get('anchor_spread') is not None:
-            document['anchor_spread'] = np.asarray(document['anchor_spread'], dtype=np.float64).reshape(-1)
-            if len(document['anchor_spread']) != B:
-                raise ValueError('anchor_spread does not match the bone count')
-        else:
-            document['anchor_spread'] = None
-        if document.get('depth_rays') is not None:
-            document['depth_rays'] = np.asarray(document['depth_rays'], dtype=np.float64).reshape(-1, 3)
-            if len(document['depth_rays']) != B:
-                raise ValueError('depth_rays does not match the bone count')
-        else:
-            document['depth_rays'] = None
+        for key, row_shape in (('anchor_spread', ()), ('depth_rays', (3,))):
+            document[key] = _optional_per_bone(document.get(key), key, B, row_shape)
         document['joint_ids'] = np.asarray(document.get('joint_ids', np.arange(B)), dtype=np.int64)
         if len(document['joint_ids']) != B or len(set(document['joint_ids'].tolist())) != B:
             raise ValueError('joint_ids must be one distinct id per bone')
