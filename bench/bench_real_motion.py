@@ -4,6 +4,7 @@ end to end, scored against the ground truth.
     python bench/bench_real_motion.py [--frames 90] [--scenes empty,room] [--only wave,cow]
                                       [--work DIR] [--score-only] [--json FILE]
                                       [--seeds 0,1,2] [--forms cloud,depth]
+                                      [--params FILE] [--baseline FILE]
 
 Subjects: every BVH clip in $SKEL_SHARED_DATA/mocap/ (real actors, on a body of capsules), the
 cow rig ($SKEL_SHARED_DATA/rigs/cow, blended between its key poses) and the samba mesh sequence
@@ -27,6 +28,9 @@ matched a true joint.
 
 `--work DIR` keeps the bags and run outputs (default: a temporary directory); with
 `--score-only` nothing is simulated or run again, the outputs in DIR are scored.
+`--baseline FILE` (another run's `--json` rows, e.g. the defaults before a `--params`
+variant) adds the change of each half's means, per seed and input form, and on how many
+rows each figure rose and fell.
 $SKEL_SHARED_DATA is the real data directory (default: `shared/data` beside the checkout).
 """
 from __future__ import annotations
@@ -289,6 +293,41 @@ def stability_table(rows: list) -> str:
     return '\n'.join(lines)
 
 
+def _variant(row: dict) -> str:
+    """The seed and input form of a row ('' for seed 0 from clouds): its scene's suffix."""
+    base = row.get('base_scene') or row['scene'].split('-', 1)[0]
+    return row['scene'][len(base):].lstrip('-')
+
+
+def comparison_table(rows: list, baseline: list) -> str:
+    """Per half and variant (seed, input form), over the rows both runs scored: the mean of
+    each headline figure in the baseline -> in these rows, and on how many of those rows it
+    rose and fell. A real change shows on both halves and on most rows; the registration's
+    chaos moves single rows both ways (bench/README.md, "Comparing two runs")."""
+    before = {(r['subject'], r['scene']): r for r in baseline if r['true_joints']}
+    pairs = [(before[(r['subject'], r['scene'])], r) for r in rows
+             if r['true_joints'] and (r['subject'], r['scene']) in before]
+    keys = [k for k in SUMMARY_KEYS if k[0] != 'frame_coverage']
+    lines = ['| half | variant | rows | ' + ' | '.join(label for _, label, _ in keys) + ' |',
+             '|' + '---|' * (3 + len(keys))]
+    groups = {}
+    for old, new in pairs:
+        groups.setdefault((new['half'], _variant(new)), []).append((old, new))
+    for (name, variant), chosen in sorted(groups.items(), key=lambda kv: (kv[0][0] != 'tuning', kv[0][1])):
+        cells = []
+        for key, _, scale in keys:
+            old = np.array([_num(o.get(key)) for o, _ in chosen])
+            new = np.array([_num(n.get(key)) for _, n in chosen])
+            both = np.isfinite(old) & np.isfinite(new)
+            digits = 1 if scale == 100.0 else 2
+            old_mean = float(np.mean(old[both])) if both.any() else float('nan')
+            new_mean = float(np.mean(new[both])) if both.any() else float('nan')
+            cells.append(f'{_fmt(old_mean, digits, scale)} -> {_fmt(new_mean, digits, scale)} '
+                         f'({int(np.sum(new[both] > old[both]))} up, {int(np.sum(new[both] < old[both]))} down)')
+        lines.append(f'| {name} | {variant or "seed 0"} | {len(chosen)} | ' + ' | '.join(cells) + ' |')
+    return '\n'.join(lines)
+
+
 def per_joint_table(rows: list) -> str:
     """Each anatomical joint over the rows where it bends or travels: how often it is
     found (at 15, 10, 5 cm), and where its error lies: the mean offset along the camera ray
@@ -327,6 +366,8 @@ def main() -> int:
     parser.add_argument('--forms', default='cloud', help='input forms: cloud, depth (16UC1 depth images)')
     parser.add_argument('--params', default=None, help='a parameter file for skel-extract run (a variant to '
                                                        'compare with the defaults)')
+    parser.add_argument('--baseline', default=None, help="another run's --json rows: print the change of each "
+                                                         'half\'s means from them (and on how many rows)')
     args = parser.parse_args()
     chosen = subjects([o for o in args.only.split(',') if o])
     if not chosen:
@@ -363,6 +404,9 @@ def main() -> int:
         print(stability_table(rows))
         print()
     print(segmentation_table(rows))
+    if args.baseline:
+        print()
+        print(comparison_table(rows, json.loads(Path(args.baseline).read_text())))
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1, default=float))
     return 0

@@ -37,3 +37,32 @@ def test_bench_registration_runs_the_registration_and_the_skeleton_tracker():
     # both follow the arm: far nearer the truth than the rest pose held still
     assert mean['ours'] < 0.5 * mean['static'] and mean['tracker'] < 0.5 * mean['static'], mean
     assert after_window['tracker'] < 0.5 * after_window['static'], after_window
+
+
+def _row(subject, scene, half, recall, skill, error_m, base_scene='empty'):
+    return {'subject': subject, 'scene': scene, 'base_scene': base_scene, 'half': half, 'true_joints': 21,
+            'articulated_recall': recall, 'tracking_skill': skill, 'mean_error_m': error_m}
+
+
+def test_bench_real_motion_compares_each_half_and_seed_with_a_baseline():
+    import importlib.util
+    spec = importlib.util.spec_from_file_location('bench_real_motion', REPO / 'bench' / 'bench_real_motion.py')
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    baseline = [_row('wave', 'empty', 'tuning', 0.5, 0.2, 0.08), _row('run', 'empty', 'tuning', 0.3, 0.0, 0.10),
+                _row('wave', 'empty-seed1', 'tuning', 1.0, 0.4, 0.06), _row('cow', 'empty', 'check', 0.2, 0.0, 0.1),
+                _row('samba', 'empty', 'check', None, None, None) | {'true_joints': 0}]
+    rows = [_row('wave', 'empty', 'tuning', 1.0, 0.4, 0.06), _row('run', 'empty', 'tuning', 0.2, 0.1, 0.10),
+            _row('wave', 'empty-seed1', 'tuning', 0.5, 0.2, 0.08), _row('cow', 'room', 'check', 0.9, 0.5, 0.05)]
+    lines = bench.comparison_table(rows, baseline).splitlines()
+    header = [cell.strip() for cell in lines[0].strip('|').split('|')]
+    table = {(cells[0], cells[1]): dict(zip(header, cells))
+             for cells in ([c.strip() for c in line.strip('|').split('|')] for line in lines[2:])}
+    # seed 0 and seed 1 apart; the cow's room row has no baseline, the samba no joints: neither counts
+    assert set(table) == {('tuning', 'seed 0'), ('tuning', 'seed1')}, lines
+    seed0 = table[('tuning', 'seed 0')]
+    assert seed0['rows'] == '2'
+    assert seed0['artic. recall'] == '0.40 -> 0.60 (1 up, 1 down)'
+    assert seed0['tracking skill'] == '0.10 -> 0.25 (2 up, 0 down)'
+    assert seed0['joint mean (cm)'] == '9.0 -> 8.0 (0 up, 1 down)'
+    assert table[('tuning', 'seed1')]['artic. recall'] == '1.00 -> 0.50 (0 up, 1 down)'
