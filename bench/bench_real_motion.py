@@ -324,7 +324,7 @@ def comparison_table(rows: list, baseline: list) -> str:
             new_mean = float(np.mean(new[both])) if both.any() else float('nan')
             cells.append(f'{_fmt(old_mean, digits, scale)} -> {_fmt(new_mean, digits, scale)} '
                          f'({int(np.sum(new[both] > old[both]))} up, {int(np.sum(new[both] < old[both]))} down)')
-        lines.append(f'| {name} | {variant or "seed 0"} | {len(chosen)} | ' + ' | '.join(cells) + ' |')
+        lines.append(f'| {name} | {variant or "seed0"} | {len(chosen)} | ' + ' | '.join(cells) + ' |')
     return '\n'.join(lines)
 
 
