@@ -51,7 +51,7 @@ from skel_extract_ros.core.growth import GrowthSchedule, SkeletonGrowth  # noqa:
 from skel_extract_ros.core.live import ArticulatedTracker, LiveJointTracker  # noqa: E402
 from skel_extract_ros.core.preprocess import Preprocessor  # noqa: E402
 from skel_extract_ros.core.registration import NonRigidRegistration, RegistrationParams  # noqa: E402
-from skel_extract_ros.core.rest_pose import RestPose  # noqa: E402
+from skel_extract_ros.core.rest_pose import RestPose, RestPoseParams  # noqa: E402
 from skel_extract_ros.core.sequence import SequenceRegistration  # noqa: E402
 from skel_extract_ros.app.evaluation import GroundTruth, evaluate_registration  # noqa: E402
 from skel_extract_ros.sim import DepthCamera, Intrinsics, NoiseModel, generate_sequence  # noqa: E402
@@ -110,11 +110,15 @@ def segmented(simulate, kwargs: dict, frames: int):
     """A real-motion sequence through the pipeline's segmentation and preprocessing:
     (observed frames, rest points, index of the rest frame, ground truth)."""
     sequence = simulate(frames=frames, progress=False, **kwargs)
-    registration = SequenceRegistration(RegistrationParams(max_iterations=1), keep_observed=True)
+    # the rest pose from the first frame the subject is wholly in view (choice_frames 1):
+    # every method registers forward from it, so a rest pose chosen later in the clip
+    # would be registered onto the first frames from another pose
+    registration = SequenceRegistration(RegistrationParams(max_iterations=1), RestPoseParams(choice_frames=1),
+                                        keep_observed=True)
     registration.register(list(sequence.clouds))
     if registration.rest_pose_ is None:
         raise RuntimeError('the segmentation never found the subject')
-    start = int(np.flatnonzero(registration.statuses_ != 'empty')[0])
+    start = registration.rest_frame_
     return registration.observed_, registration.rest_pose_.points, start, GroundTruth.from_arrays(sequence.ground_truth)
 
 
