@@ -2,7 +2,7 @@
 the camera-rate issue (rate, latency, first skeleton) and the live joints' accuracy, end to end.
 
     python bench/bench_realtime.py [--only walk_normal,cow,human] [--loop 10] [--bounce]
-                                   [--window 10] [--runs 1] [--work DIR]
+                                   [--window 10] [--runs 1] [--work DIR] [--params FILE]
 
 For each clip (default: the five of bench/README.md's node tables: walk_normal, run_normal,
 cow, wave-both-hands_active, wave-left-hand_normal; `--only` picks among every clip of
@@ -13,6 +13,8 @@ rest pose's `choice_frames` set to `--window` (a 3 s bag played N times: a 60-fr
 would leave a short tracking time).
 `human` in `--only` is the built-in human in the room as 1.2 MB clouds, 300 frames (10 s),
 on the defaults (the 60-frame window), played `--loop` times.
+`--params FILE` (a ROS 2 parameter YAML, e.g. the accumulator's `sliding: true`) is
+applied on top: over the clips' window parameters, and alone for the human.
 
 Printed per run: joints once tracking (Hz, of the camera's), latency cloud -> joints median
 / p95 (ms), the first skeleton (s after the first camera frame), the frames registered from
@@ -35,6 +37,8 @@ import sys
 import tempfile
 from pathlib import Path
 
+import yaml
+
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / 'bench'))
@@ -50,6 +54,18 @@ LINES = {
     'tracking': re.compile(r'once tracking \(([\d.]+) s\): (\d+) of (\d+) camera frames got joints '
                            r'\(([\d.]+) Hz of ([\d.]+) Hz\)'),
 }
+
+
+def merged_params(base: dict, extra: dict) -> dict:
+    """ROS 2 parameters `extra` applied over `base` (both {node: {'ros__parameters': {...}}}):
+    nested mappings merged key by key, any other value of `extra` replacing `base`'s."""
+    merged = dict(base)
+    for key, value in extra.items():
+        if isinstance(value, dict) and isinstance(merged.get(key), dict):
+            merged[key] = merged_params(merged[key], value)
+        else:
+            merged[key] = value
+    return merged
 
 
 def replay_row(bag: Path, out: Path, loop: int, params: Path | None, bounce: bool = False) -> dict:
@@ -83,20 +99,28 @@ def main(argv=None) -> int:
     parser.add_argument('--window', type=int, default=10, help="the accumulator's window_size for the clips")
     parser.add_argument('--runs', type=int, default=1, help='runs of each bag')
     parser.add_argument('--work', type=Path)
+    parser.add_argument('--params', type=Path, default=None,
+                        help='ROS 2 parameter YAML applied over the clips\' window parameters and to the human')
     args = parser.parse_args(argv)
     work = args.work or Path(tempfile.mkdtemp(prefix='bench_realtime_'))
     work.mkdir(parents=True, exist_ok=True)
+    extra = (yaml.safe_load(args.params.read_text()) or {}) if args.params else {}
     window = work / f'window_{args.window}.yaml'
     # the rest pose chosen within the window too (choice_frames 60 by default: the window's)
-    window.write_text(f'accumulator_node:\n  ros__parameters:\n    window_size: {args.window}\n'
-                      f'registration_node:\n  ros__parameters:\n    rest_pose:\n      choice_frames: {args.window}\n')
+    window_params = {'accumulator_node': {'ros__parameters': {'window_size': args.window}},
+                     'registration_node': {'ros__parameters': {'rest_pose': {'choice_frames': args.window}}}}
+    window.write_text(yaml.safe_dump(merged_params(window_params, extra)))
+    human_params = None
+    if extra:
+        human_params = work / 'human_params.yaml'
+        human_params.write_text(yaml.safe_dump(extra))
     clips = [name for name in args.only.split(',') if name and name != 'human']
     rows = [(name, source_args, window, False) for name, source_args in (subjects(clips) if clips else [])
             if name != 'samba']                                  # a mesh sequence: no joints to track
     if 'human' in args.only.split(','):
-        rows.append(('human', ['--subject', 'human'], None, True))
+        rows.append(('human', ['--subject', 'human'], human_params, True))
     print(f'replay --realtime --loop {args.loop}{" --bounce" if args.bounce else ""}; clips: depth images, '
-          f'window_size {args.window}; work {work}\n')
+          f'window_size {args.window}{f"; parameters from {args.params}" if extra else ""}; work {work}\n')
     print('| bag | run | joints once tracking (Hz of camera) | latency median / p95 (ms) | first skeleton (s) '
           '| registered from pass 3 | registration error from pass 3 (cm) | live joint to nearest true joint: '
           'median / p95 (cm) |')

@@ -1,7 +1,8 @@
 """The benchmark scripts still run against the code they measure: each on one small
 built-in subject and a few frames (their numbers are the benchmarks' business, in
 bench/README.md; this catches a script the code moved under, as the growth window once
-did to bench_skeleton.py); and the real-motion bench's comparison of two runs adds up."""
+did to bench_skeleton.py); the real-motion bench's comparison of two runs adds up, and the
+realtime bench's extra parameters merge over its window's."""
 import subprocess
 import sys
 from pathlib import Path
@@ -66,3 +67,20 @@ def test_bench_real_motion_compares_each_half_and_seed_with_a_baseline():
     assert seed0['tracking skill'] == '0.10 -> 0.25 (2 up, 0 down)'
     assert seed0['joint mean (cm)'] == '9.0 -> 8.0 (0 up, 1 down)'
     assert table[('tuning', 'seed1')]['artic. recall'] == '1.00 -> 0.50 (0 up, 1 down)'
+
+
+def test_bench_realtime_applies_extra_parameters_over_the_window():
+    sys.path.insert(0, str(REPO / 'bench'))
+    from bench_realtime import merged_params
+    window = {'accumulator_node': {'ros__parameters': {'window_size': 10}},
+              'registration_node': {'ros__parameters': {'rest_pose': {'choice_frames': 10}}}}
+    extra = {'accumulator_node': {'ros__parameters': {'sliding': True, 'window_size': 20}},
+             'registration_node': {'ros__parameters': {'rest_pose': {'mode': 'first'}}},
+             'joint_estimation_node': {'ros__parameters': {'zeta': 10.0}}}
+    merged = merged_params(window, extra)
+    assert merged['accumulator_node']['ros__parameters'] == {'window_size': 20, 'sliding': True}
+    # a nested section keeps the window's keys it does not name
+    assert merged['registration_node']['ros__parameters']['rest_pose'] == {'choice_frames': 10, 'mode': 'first'}
+    assert merged['joint_estimation_node'] == extra['joint_estimation_node']
+    # the window's own parameters are not changed in place
+    assert window['accumulator_node']['ros__parameters'] == {'window_size': 10}

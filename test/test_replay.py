@@ -142,6 +142,28 @@ def test_looped_stamps_move_on_by_a_period_across_passes_and_bounce_mirrors():
     assert looped_stamp(int(bag[0]), 1, pass_ns, mirror_ns, False) == bag[-1] + period
 
 
+def test_realtime_replay_waits_for_the_first_skeletons_frames_not_a_grown_ones_key_frames():
+    """replay --realtime with a growing skeleton (sliding): the newest structure's key frames
+    include camera frames the live fit skipped, which the joint node does not answer again;
+    the replay waits for the frames of the first description (all answered), not for those,
+    so it ends instead of waiting out its budget and failing. Lossless, every registered
+    frame still counts."""
+    from skel_extract_ros.app.replay import answered
+    from skel_extract_ros.app.replay.recording import Received
+    received = Received()
+    received.registered = {stamp: None for stamp in range(1, 9)}
+    received.structures = [{'window_stamps_ns': [1, 2, 3]}, {'window_stamps_ns': [1, 3, 5, 7]}]
+    received.structure = received.structures[-1]
+    assert not answered(received, realtime=True)            # no description yet
+    received.descriptions = [{'window_stamps_ns': [1, 2, 3]}, {'window_stamps_ns': [1, 3, 5, 7]}]
+    received.description = received.descriptions[-1]
+    received.joints = {stamp: None for stamp in (1, 2, 3, 4, 6, 8)}     # 5 and 7 were skipped live
+    assert answered(received, realtime=True)
+    assert not answered(received, realtime=False)           # lossless: 5 and 7 are missing
+    del received.joints[2]                                  # a frame of the first window without joints
+    assert not answered(received, realtime=True)
+
+
 def test_bounce_refuses_a_bag_larger_than_half_the_available_memory(sample_bag, monkeypatch):
     """--bounce holds the bag's messages; one that would not fit says so before any node starts."""
     from skel_extract_ros.app import replay as replay_module

@@ -319,21 +319,33 @@ class _Replay:
                 raise ReplayError(f'accumulator_node/extract refused: {response.message if response else "no reply"}')
 
     def _wait_for_joints(self) -> None:
-        """Lossless: every registered frame has joints; realtime: the window's frames (Alg. 2
-        answers them), the camera frames only as fast as the live fit goes."""
+        """Lossless: every registered frame has joints; realtime: the first skeleton's frames
+        (`answered`), the camera frames only as fast as the live fit goes."""
         received = self.received
         budget = 120.0 + 5.0 * len(received.registered)
         if not self._wait(lambda: received.structure is not None, budget):
             raise ReplayError('no skeleton/structure: ' + log_tail(self.out / 'logs' / 'accumulator_node.log', 1))
-        must_have = received.structure['window_stamps_ns'] if self.realtime else received.registered
 
         def complete():
             # markers follow each joints message: the last ones must be in before the nodes stop
-            return (received.description is not None and all(s in received.joints for s in must_have)
+            return (answered(received, self.realtime)
                     and received.counts.get('skeleton/markers', 0) >= received.counts.get('skeleton/joints', 0))
         if not self._wait(complete, budget):
             raise ReplayError('joints missing for some frames: '
                               + log_tail(self.out / 'logs' / 'joint_estimation_node.log', 1))
+
+
+def answered(received: Received, realtime: bool) -> bool:
+    """Whether the frames the replay waits for have joints: lossless, every registered
+    frame; realtime, the frames the first description was learned on. Nothing had joints
+    before that one, so the joint node answers each of them. A skeleton that grows later
+    (`sliding`) is learned on key frames that can be minutes old: the node answered them
+    live, or skipped them like any camera frame the live fit did not reach, and does not
+    answer them again (nodes/joint_stages.py)."""
+    if received.description is None:
+        return False
+    must_have = received.descriptions[0]['window_stamps_ns'] if realtime else received.registered
+    return all(stamp in received.joints for stamp in must_have)
 
 
 def _described(received: Received) -> bool:
