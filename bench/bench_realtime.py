@@ -46,6 +46,7 @@ sys.path.insert(0, str(REPO / 'bench'))
 from bench_live import simulated_bag  # noqa: E402
 from bench_real_motion import CLI, subjects  # noqa: E402
 from score_realtime import score  # noqa: E402
+from skel_extract_ros.config import load_params_file  # noqa: E402
 
 DEFAULT_CLIPS = ('walk_normal', 'run_normal', 'cow', 'wave-both-hands_active', 'wave-left-hand_normal')
 LINES = {
@@ -57,8 +58,9 @@ LINES = {
 
 
 def merged_params(base: dict, extra: dict) -> dict:
-    """ROS 2 parameters `extra` applied over `base` (both {node: {'ros__parameters': {...}}}):
-    nested mappings merged key by key, any other value of `extra` replacing `base`'s."""
+    """Parameters `extra` applied over `base` (both {node: {name: value}}, as
+    config.load_params_file reads them): nested mappings merged key by key, any other value
+    of `extra` replacing `base`'s."""
     merged = dict(base)
     for key, value in extra.items():
         if isinstance(value, dict) and isinstance(merged.get(key), dict):
@@ -66,6 +68,11 @@ def merged_params(base: dict, extra: dict) -> dict:
         else:
             merged[key] = value
     return merged
+
+
+def _params_document(nodes: dict) -> str:
+    """A ROS 2 parameter file's text for {node: {name: value}}."""
+    return yaml.safe_dump({node: {'ros__parameters': params} for node, params in nodes.items()})
 
 
 def replay_row(bag: Path, out: Path, loop: int, params: Path | None, bounce: bool = False) -> dict:
@@ -104,16 +111,17 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     work = args.work or Path(tempfile.mkdtemp(prefix='bench_realtime_'))
     work.mkdir(parents=True, exist_ok=True)
-    extra = (yaml.safe_load(args.params.read_text()) or {}) if args.params else {}
+    # read (and checked) before minutes of simulation, as the replay will read it
+    extra = load_params_file(args.params) if args.params else {}
     window = work / f'window_{args.window}.yaml'
     # the rest pose chosen within the window too (choice_frames 60 by default: the window's)
-    window_params = {'accumulator_node': {'ros__parameters': {'window_size': args.window}},
-                     'registration_node': {'ros__parameters': {'rest_pose': {'choice_frames': args.window}}}}
-    window.write_text(yaml.safe_dump(merged_params(window_params, extra)))
+    window_params = {'accumulator_node': {'window_size': args.window},
+                     'registration_node': {'rest_pose': {'choice_frames': args.window}}}
+    window.write_text(_params_document(merged_params(window_params, extra)))
     human_params = None
     if extra:
         human_params = work / 'human_params.yaml'
-        human_params.write_text(yaml.safe_dump(extra))
+        human_params.write_text(_params_document(extra))
     clips = [name for name in args.only.split(',') if name and name != 'human']
     rows = [(name, source_args, window, False) for name, source_args in (subjects(clips) if clips else [])
             if name != 'samba']                                  # a mesh sequence: no joints to track

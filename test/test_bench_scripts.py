@@ -72,15 +72,15 @@ def test_bench_real_motion_compares_each_half_and_seed_with_a_baseline():
 def test_bench_realtime_applies_extra_parameters_over_the_window():
     sys.path.insert(0, str(REPO / 'bench'))
     from bench_realtime import merged_params
-    window = {'accumulator_node': {'ros__parameters': {'window_size': 10}},
-              'registration_node': {'ros__parameters': {'rest_pose': {'choice_frames': 10}}}}
-    extra = {'accumulator_node': {'ros__parameters': {'sliding': True, 'window_size': 20}},
-             'registration_node': {'ros__parameters': {'rest_pose': {'mode': 'first'}}},
-             'joint_estimation_node': {'ros__parameters': {'zeta': 10.0}}}
+    window = {'accumulator_node': {'window_size': 10},
+              'registration_node': {'rest_pose': {'choice_frames': 10}}}
+    extra = {'accumulator_node': {'sliding': True, 'window_size': 20},
+             'registration_node': {'rest_pose': {'mode': 'first'}},
+             'joint_estimation_node': {'zeta': 10.0}}
     merged = merged_params(window, extra)
-    assert merged['accumulator_node']['ros__parameters'] == {'window_size': 20, 'sliding': True}
+    assert merged['accumulator_node'] == {'window_size': 20, 'sliding': True}
     # a nested section keeps the window's keys it does not name
-    assert merged['registration_node']['ros__parameters']['rest_pose'] == {'choice_frames': 10, 'mode': 'first'}
+    assert merged['registration_node']['rest_pose'] == {'choice_frames': 10, 'mode': 'first'}
     assert merged['joint_estimation_node'] == extra['joint_estimation_node']
     # the window's own parameters are not changed in place
-    assert window['accumulator_node']['ros__parameters'] == {'window_size': 10}
+    assert window['accumulator_node'] == {'window_size': 10}
