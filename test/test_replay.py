@@ -164,6 +164,30 @@ def test_realtime_replay_waits_for_the_first_skeletons_frames_not_a_grown_ones_k
     assert not answered(received, realtime=True)
 
 
+def test_lossless_live_latency_counts_the_frames_registered_once_the_skeleton_existed():
+    """Lossless replay's joint latency (registered -> joints) is timed over the frames
+    registered after the first description came. The first window's frames and those
+    registered while Steps 2-3 ran wait seconds for the skeleton, and a grown skeleton's
+    window (sliding) does not mark them: timed, they would be the worst live latency."""
+    from skel_extract_ros.app.replay.summary import _latencies
+    from skel_extract_ros.app.replay.recording import Received
+    received = Received()
+    received.published_at = {stamp: float(stamp) for stamp in range(1, 9)}
+    received.registered_at = {stamp: stamp + 0.05 for stamp in range(1, 9)}
+    # frames 1-4 registered before the skeleton (at 5.0); 5-8 answered 20 ms after registration
+    received.description_at = 5.0
+    received.joints_at = {stamp: (6.0 if stamp < 5 else stamp + 0.07) for stamp in range(1, 9)}
+    received.structures = [{'window_stamps_ns': [1, 2]}, {'window_stamps_ns': [5, 6, 7, 8]}]
+    received.structure = received.structures[-1]
+    latency = _latencies(received, realtime=False)
+    assert latency['live_joints_ms']['n'] == 4
+    assert latency['live_joints_ms']['worst'] == pytest.approx(20.0)
+    assert latency['registration_ms']['n'] == 8
+    assert 'live_joints_ms' not in _latencies(received, realtime=True)
+    received.description_at = None                          # no skeleton: nothing live
+    assert 'live_joints_ms' not in _latencies(received, realtime=False)
+
+
 def test_bounce_refuses_a_bag_larger_than_half_the_available_memory(sample_bag, monkeypatch):
     """--bounce holds the bag's messages; one that would not fit says so before any node starts."""
     from skel_extract_ros.app import replay as replay_module

@@ -80,13 +80,19 @@ def _tracking_delivery(received: Received, tracking_from: float) -> dict:
 def _latencies(received: Received, realtime: bool) -> dict:
     """Per-node latency (ms): registration = cloud published -> registered_points received;
     lossless only, joints (live frames) = registered_points received -> skeleton/joints
-    received. Realtime joints answer the camera frame, not its registration (often before
-    it): their latency is the camera delivery's (_camera_delivery)."""
+    received, over the frames registered once the first skeleton/description had come.
+    The frames registered before it (the first window, which Alg. 2 answers, and those
+    registered while it learned) wait for the skeleton, not for the joint node; a grown
+    skeleton's window (`sliding`) holds frames answered live long before it, so no
+    structure's window marks them. Realtime joints answer the camera frame, not its
+    registration (often before it): their latency is the camera delivery's
+    (_camera_delivery)."""
     registration = [1000 * (received.registered_at[s] - received.published_at[s])
                     for s in received.registered_at if s in received.published_at]
-    window = set(received.structure['window_stamps_ns']) if received.structure else set()
-    live = [] if realtime else [1000 * (received.joints_at[s] - received.registered_at[s])
-                                for s in received.joints_at if s in received.registered_at and s not in window]
+    tracking_from = received.description_at
+    live = [] if realtime or tracking_from is None else [
+        1000 * (received.joints_at[s] - received.registered_at[s])
+        for s in received.joints_at if received.registered_at.get(s, -np.inf) >= tracking_from]
     result = {}
     for name, values in (('registration_ms', registration), ('live_joints_ms', live)):
         if values:
