@@ -331,26 +331,30 @@ def comparison_table(rows: list, baseline: list) -> str:
 def per_joint_table(rows: list) -> str:
     """Each anatomical joint over the rows where it bends or travels: how often it is
     found (at 15, 10, 5 cm), and where its error lies: the mean offset along the camera ray
-    (+ = behind the true joint) and across it, and the error left once the offset is
-    removed."""
+    (+ = behind the true joint) and across it, along the limb (+ = towards its far end:
+    past the bend for a joint that starts a bone, past the end for one that ends it), and
+    the error left once the offset is removed."""
     joints = {}
     for r in rows:
         for entry in r.get('per_joint') or []:
             if entry['articulated'] or entry['moving']:
                 joints.setdefault((r['subject'] == 'cow', entry['ground_truth']), []).append(entry)
     lines = ['| joint | rows it bends or moves in | found | within 10 / 5 cm | tracked (moving) | '
-             'error (cm) | along the ray (cm) | across (cm) | offset removed (cm) |', '|' + '---|' * 9]
+             'error (cm) | along the ray (cm) | across (cm) | along the limb (cm) | offset removed (cm) |',
+             '|' + '---|' * 10]
     for (_, name), entries in sorted(joints.items()):
         found = [e for e in entries if e['found']]
         moving = [e for e in entries if e['moving']]
 
         def mean(key, chosen=found):
-            return float(np.mean([e[key] for e in chosen])) if chosen else float('nan')
+            values = [e[key] for e in chosen if e.get(key) is not None]
+            return float(np.mean(values)) if values else float('nan')
         lines.append(
             f'| {name} | {len(entries)} | {len(found)} | {sum(e["found_10cm"] for e in entries)} / '
             f'{sum(e["found_5cm"] for e in entries)} | {sum(e["tracks"] for e in moving)} of {len(moving)} | '
             f'{_fmt(mean("error_m"), 1, 100)} | {_fmt(mean("offset_along_ray_m"), 1, 100)} | '
-            f'{_fmt(mean("offset_across_ray_m"), 1, 100)} | {_fmt(mean("normalized_error_m"), 1, 100)} |')
+            f'{_fmt(mean("offset_across_ray_m"), 1, 100)} | {_fmt(mean("offset_along_limb_m"), 1, 100)} | '
+            f'{_fmt(mean("normalized_error_m"), 1, 100)} |')
     return '\n'.join(lines)
 
 

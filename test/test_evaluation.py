@@ -299,6 +299,28 @@ def test_a_static_skeleton_does_not_track(tmp_path, gt_pair):
     assert frozen.tracking_skill < 0.0 and frozen.moving_recall == 0.0
 
 
+def test_per_joint_offset_along_the_limb_is_signed_towards_its_far_end(tmp_path, gt_pair):
+    """A joint moved 4 cm down the bone it starts (a shoulder placed inside the upper arm),
+    or past the end of the last one (a wrist moved into the hand), is +4 cm along its limb;
+    moved back towards the body, -4 cm; moved across the limb, 0."""
+    from skel_extract_ros.app.evaluation.joints import limb_directions
+    gt = gt_pair[0]
+    elbow, wrist = gt.joint_names.index('l_elbow'), gt.joint_names.index('l_wrist')
+    limbs = limb_directions(gt.joints, gt.joint_parents)
+    expected_elbow = gt.joints[:, wrist] - gt.joints[:, elbow]
+    np.testing.assert_allclose(limbs[:, elbow], expected_elbow / np.linalg.norm(expected_elbow, axis=1, keepdims=True))
+    assert np.all(np.isfinite(limbs[:, elbow]))
+    for sign in (1.0, -1.0):
+        report = evaluate(tmp_path, gt, gt.joints + sign * 0.04 * np.nan_to_num(limbs))
+        rows = {row['ground_truth']: row for row in report.per_joint}
+        for name in ('l_elbow', 'l_wrist'):
+            assert rows[name]['offset_along_limb_m'] == pytest.approx(sign * 0.04, abs=1e-6)
+    sideways = np.cross(np.nan_to_num(limbs), np.array([0.0, 0.0, 1.0]))
+    sideways /= np.maximum(np.linalg.norm(sideways, axis=-1, keepdims=True), 1e-9)
+    rows = {row['ground_truth']: row for row in evaluate(tmp_path, gt, gt.joints + 0.03 * sideways).per_joint}
+    assert abs(rows['l_elbow']['offset_along_limb_m']) < 1e-6
+
+
 def test_two_joints_mid_bone_match_at_15_cm_but_not_at_5(tmp_path, gt_pair):
     gt = gt_pair[0]
     elbow, wrist = gt.joint_names.index('l_elbow'), gt.joint_names.index('l_wrist')

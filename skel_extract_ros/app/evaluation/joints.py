@@ -128,6 +128,27 @@ def scored_window(pred: PredictedSkeleton, gt: GroundTruth, start_stamp: float |
     return window, slot[window], len(gt_idx) - len(first_of_each), start
 
 
+def limb_directions(truth: np.ndarray, parents) -> np.ndarray:
+    """(W, G, 3) unit direction of each true joint's limb per frame, from the joint towards
+    its farthest child (the bone it starts), or for a joint without children from its
+    parent through it; NaN where the limb has no length. truth (W, G, 3) m, parents (G,)
+    -1 for the root. A joint placed along this direction sits inside the limb, before or
+    past where the limb bends; across it, beside the limb."""
+    parents = np.asarray(parents)
+    lengths = np.linalg.norm(truth - truth[:, np.maximum(parents, 0)], axis=-1).mean(axis=0)   # (G,)
+    lengths[parents < 0] = -np.inf
+    n = truth.shape[1]
+    longest_child = np.full(n, -1)
+    for child in np.argsort(lengths):   # loop over joints: the longest child written last
+        if parents[child] >= 0:
+            longest_child[parents[child]] = child
+    has_child = longest_child >= 0
+    direction = np.where(has_child[None, :, None], truth[:, np.maximum(longest_child, 0)] - truth,
+                         truth - truth[:, np.maximum(parents, 0)])
+    norm = np.linalg.norm(direction, axis=-1, keepdims=True)
+    return np.where(norm > 1e-9, direction / np.maximum(norm, 1e-12), np.nan)
+
+
 def evaluate_joints(pred: PredictedSkeleton, gt: GroundTruth, threshold_m: float | None = None,
                     start_stamp: float | None = None, end_stamp: float | None = None) -> JointReport:
     """Joint accuracy of `pred` against `gt` over the W ground-truth frames from the start
@@ -151,8 +172,10 @@ def evaluate_joints(pred: PredictedSkeleton, gt: GroundTruth, threshold_m: float
     with every joint finite / W; motion_skill: 1 - mean normalized error / mean true motion
     spread over matched joints; nonfinite_fraction: share of scored joint-frames missing.
     per_joint: one row per true joint: found, the predicted joint, its error, offset along
-    the camera ray (+ = farther than the truth) and across it, the offset-removed error,
-    travel and static error. Read every error next to recall and precision.
+    the camera ray (+ = farther than the truth) and across it, along its limb
+    (`limb_directions`, + = towards the limb's far end; None where the limb has no length),
+    the offset-removed error, travel and static error. Read every error next to recall and
+    precision.
     """
     if gt.joints.shape[1] == 0:
         raise EvaluationError('the ground truth has no joints (a captured mesh sequence?): '
@@ -212,6 +235,7 @@ def evaluate_joints(pred: PredictedSkeleton, gt: GroundTruth, threshold_m: float
     # is its ray
     rays = truth.mean(axis=0)
     rays /= np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-9)
+    limbs = limb_directions(truth, gt.joint_parents)                       # (W, G, 3)
     normalized, spreads = [], []
     for g in range(n_gt):   # loop over true joints, not points
         row = {'ground_truth': gt.joint_names[g], 'predicted': None, 'found': False,
@@ -226,9 +250,11 @@ def evaluate_joints(pred: PredictedSkeleton, gt: GroundTruth, threshold_m: float
             along = float(mean_offset @ rays[g])
             normalized.append(float(np.linalg.norm(offsets - mean_offset, axis=1).mean()))
             spreads.append(float(np.linalg.norm(truth[:, g] - truth[:, g].mean(axis=0), axis=1).mean()))
+            along_limb = np.einsum('wi,wi->w', predicted[:, r] - truth[:, g], limbs[:, g])[finite[:, r]]
             row.update(predicted=pred.joint_names[r], found=True, error_m=float(error[g]),
                        normalized_error_m=normalized[-1], offset_along_ray_m=along,
-                       offset_across_ray_m=float(np.linalg.norm(mean_offset - along * rays[g])))
+                       offset_across_ray_m=float(np.linalg.norm(mean_offset - along * rays[g])),
+                       offset_along_limb_m=float(np.nanmean(along_limb)) if np.isfinite(along_limb).any() else None)
         report.per_joint.append(row)
     if len(rows):
         report.mean_error_m = float(np.nanmean(error))

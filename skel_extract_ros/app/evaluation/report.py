@@ -35,7 +35,8 @@ def score_lines(result: dict, per_joint: bool) -> list:
         if j['missed_moving']:
             lines.append(f'  moving joints not tracked: {", ".join(j["missed_moving"])}')
         if per_joint:
-            lines.append('  true joint      <- predicted   error / offset removed / along ray / across (cm)')
+            lines.append('  true joint      <- predicted   error / offset removed / along ray / across / '
+                         'along limb (cm)')
             for row in j['per_joint']:
                 kind = ' bends' if row['articulated'] else ''
                 kind += f' moves {_cm(row["travel_m"])} cm' if row['moving'] else ''
@@ -44,7 +45,7 @@ def score_lines(result: dict, per_joint: bool) -> list:
                     continue
                 lines.append(f'  {row["ground_truth"]:>14s} <- {row["predicted"]:<10s} {_cm(row["error_m"])} / '
                              f'{_cm(row["normalized_error_m"])} / {_cm(row["offset_along_ray_m"])} / '
-                             f'{_cm(row["offset_across_ray_m"])}{kind}')
+                             f'{_cm(row["offset_across_ray_m"])} / {_cm(row["offset_along_limb_m"])}{kind}')
     if 'registration' in result:
         r = result['registration']
         drift = '  '.join(f'@{k} {v:.4f}' for k, v in r['drift_m'].items())
