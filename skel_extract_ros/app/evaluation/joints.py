@@ -250,7 +250,7 @@ def evaluate_joints(pred: PredictedSkeleton, gt: GroundTruth, threshold_m: float
             along = float(mean_offset @ rays[g])
             normalized.append(float(np.linalg.norm(offsets - mean_offset, axis=1).mean()))
             spreads.append(float(np.linalg.norm(truth[:, g] - truth[:, g].mean(axis=0), axis=1).mean()))
-            along_limb = np.einsum('wi,wi->w', predicted[:, r] - truth[:, g], limbs[:, g])[finite[:, r]]
+            along_limb = np.einsum('wi,wi->w', offsets, limbs[finite[:, r], g])
             row.update(predicted=pred.joint_names[r], found=True, error_m=float(error[g]),
                        normalized_error_m=normalized[-1], offset_along_ray_m=along,
                        offset_across_ray_m=float(np.linalg.norm(mean_offset - along * rays[g])),
