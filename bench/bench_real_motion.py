@@ -142,7 +142,7 @@ def segmentation_scores(bag: Path, gt_path: Path) -> dict:
 JOINT_KEYS = ('n_predicted', 'n_matched', 'recall', 'articulated_recall', 'articulated_recall_10cm',
               'articulated_recall_5cm', 'n_articulated', 'moving_recall', 'n_moving', 'tracking_skill',
               'frame_coverage', 'precision', 'mean_error_m', 'normalized_error_m', 'motion_skill',
-              'nonfinite_fraction')
+              'nonfinite_fraction', 'threshold_m')
 
 
 def _num(value) -> float:
@@ -274,22 +274,56 @@ def summary_table(rows: list) -> str:
     return '\n'.join(lines)
 
 
+def _miss_kind(row: dict, entry: dict) -> str:
+    """Why a true joint (a per_joint entry of `row`) was not found: 'structure' when the
+    skeleton has no joint of its own there (its nearest answers another true joint, or none
+    lies within twice the match threshold), 'placement' when its nearest joint is its own
+    but placed beyond the threshold."""
+    nearest = entry.get('nearest_m')
+    if entry.get('nearest_answers') or nearest is None or nearest > 2.0 * _num(row.get('threshold_m')):
+        return 'structure'
+    return 'placement'
+
+
+def flipping_joints(chosen: list) -> tuple:
+    """Over the variants of one subject and scene: (structure, placement) counts of the
+    bending joints found in some variants and not in others, a joint counting as placement
+    when every variant that missed it has a joint of its own near it (`_miss_kind`)."""
+    entries = {}
+    for row in chosen:
+        for entry in row.get('per_joint', []):
+            if entry['articulated']:
+                entries.setdefault(entry['ground_truth'], []).append((row, entry))
+    structure = placement = 0
+    for seen in entries.values():
+        found = [entry['found'] for _, entry in seen]
+        if all(found) or not any(found):
+            continue
+        kinds = {_miss_kind(row, entry) for row, entry in seen if not entry['found']}
+        structure += kinds != {'placement'}
+        placement += kinds == {'placement'}
+    return structure, placement
+
+
 def stability_table(rows: list) -> str:
     """Per subject and scene, over its seeds and input forms: the range of the headline
-    figures (the skeleton should not flip with the noise or the input's form)."""
+    figures (the skeleton should not flip with the noise or the input's form), and the
+    bending joints found in only some of them, by why they were missed (`flipping_joints`)."""
     groups = {}
     for r in rows:
         if r['true_joints']:
             groups.setdefault((r['subject'], r['base_scene']), []).append(r)
-    lines = ['| subject | scene | variants | artic. recall min-max | precision min-max | tracking skill min-max |',
-             '|' + '---|' * 6]
+    lines = ['| subject | scene | variants | artic. recall min-max | precision min-max | tracking skill min-max | '
+             'bending joints found in some variants only: structure / placement |',
+             '|' + '---|' * 7]
     for (subject, scene), chosen in groups.items():
         def span(key):
             values = np.array([_num(r.get(key)) for r in chosen])
             values = values[np.isfinite(values)]
             return f'{_fmt(float(values.min()))}-{_fmt(float(values.max()))}' if len(values) else '-'
+        structure, placement = flipping_joints(chosen)
         lines.append(f'| {subject} | {scene} | {len(chosen)} | {span("articulated_recall")} | '
-                     f'{span("precision")} | {span("tracking_skill")} |')
+                     f'{span("precision")} | {span("tracking_skill")} | {structure} / {placement} |')
     return '\n'.join(lines)
 
 

@@ -69,6 +69,31 @@ def test_bench_real_motion_compares_each_half_and_seed_with_a_baseline():
     assert table[('tuning', 'seed1')]['artic. recall'] == '1.00 -> 0.50 (0 up, 1 down)'
 
 
+def _joint(name, found, nearest_m=None, answers=None):
+    return {'ground_truth': name, 'articulated': True, 'found': found, 'nearest_m': nearest_m,
+            'nearest_answers': answers}
+
+
+def test_bench_real_motion_tells_a_joint_that_flips_by_structure_from_one_that_flips_by_placement():
+    """Over three noise seeds: the elbow is missed once with a joint of its own 20 cm off
+    (placement); the wrist once because its nearest joint answers the elbow (the skeleton
+    has one joint for two: structure); the knee once with no joint within 30 cm
+    (structure); the shoulder is found every time and the hip never (neither flips)."""
+    import importlib.util
+    spec = importlib.util.spec_from_file_location('bench_real_motion', REPO / 'bench' / 'bench_real_motion.py')
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    always = [_joint('shoulder', True), _joint('hip', False, 0.5)]
+    variants = [[_joint('elbow', False, 0.20), _joint('wrist', True), _joint('knee', True)],
+                [_joint('elbow', True), _joint('wrist', False, 0.12, 'elbow'), _joint('knee', True)],
+                [_joint('elbow', True), _joint('wrist', True), _joint('knee', False, 0.40)]]
+    rows = [_row('wave', scene, 'tuning', 0.5, 0.2, 0.08) | {'threshold_m': 0.15, 'per_joint': always + joints}
+            for scene, joints in zip(('empty', 'empty-seed1', 'empty-seed2'), variants)]
+    assert bench.flipping_joints(rows) == (2, 1)
+    line = bench.stability_table(rows).splitlines()[-1]
+    assert line.startswith('| wave | empty | 3 | 0.50-0.50 |') and line.endswith('| 2 / 1 |'), line
+
+
 def test_bench_realtime_applies_extra_parameters_over_the_window():
     sys.path.insert(0, str(REPO / 'bench'))
     from bench_realtime import merged_params

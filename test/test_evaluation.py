@@ -351,3 +351,48 @@ def test_per_joint_offsets_are_split_along_and_across_the_camera_ray(tmp_path, g
         assert row['offset_across_ray_m'] == pytest.approx(0.03, abs=1e-6)
     unmatched = evaluate(tmp_path, gt, gt.joints[:, :3])
     assert sum(row['found'] for row in unmatched.per_joint) == 3 and len(unmatched.per_joint) == 15
+
+
+def test_a_joint_not_found_names_its_nearest_and_whether_it_answers_another(tmp_path, gt_pair):
+    """A skeleton without the elbow: the true elbow's nearest predicted joint is one matched
+    to another true joint (the skeleton has one joint where the truth has two). An elbow
+    placed 25 cm off: its nearest is that joint, matched to nothing (placed too far)."""
+    from skel_extract_ros.app.evaluation.report import score_lines
+    gt = gt_pair[0]
+    elbow = gt.joint_names.index('l_elbow')
+    rays = gt.joints[:, elbow].mean(axis=0)
+    without = evaluate(tmp_path, gt, np.delete(gt.joints, elbow, axis=1))
+    row = {r['ground_truth']: r for r in without.per_joint}['l_elbow']
+    assert not row['found'] and row['nearest_answers'] in gt.joint_names
+    assert row['nearest_answers'] != 'l_elbow' and row['nearest_m'] > 0.15
+    far = gt.joints.copy()
+    far[:, elbow] += 0.25 * rays / np.linalg.norm(rays)           # 25 cm deeper along its ray
+    report = evaluate(tmp_path, gt, far)
+    row = {r['ground_truth']: r for r in report.per_joint}['l_elbow']
+    assert not row['found'] and row['nearest_predicted'] == f'joint_{elbow}'
+    assert row['nearest_m'] == pytest.approx(0.25, abs=1e-6) and row['nearest_answers'] is None
+    found = {r['ground_truth']: r for r in report.per_joint}['l_wrist']
+    assert found['found'] and found['nearest_answers'] == 'l_wrist'
+    lines = score_lines({'joints': report.as_dict()}, per_joint=True)
+    assert any('l_elbow <- not found (nearest joint_' in line and 'at 25.0 cm)' in line for line in lines)
+
+
+def test_a_joint_within_the_threshold_is_not_given_up_for_a_cheaper_total(tmp_path, gt_pair):
+    """One predicted joint 8 cm from the wrist, another 40 cm beyond it (away from the
+    ankle): pairing the first with the ankle and the second with the wrist costs less in
+    total than the right pairs, and both of those pairs lie beyond the threshold. The wrist
+    is found; the other joint matches nothing."""
+    gt = gt_pair[0]
+    wrist, ankle = gt.joint_names.index('l_wrist'), gt.joint_names.index('r_ankle')
+    a, b = gt.joints[:, wrist], gt.joints[:, ankle]
+    away = (a - b) / np.linalg.norm(a - b, axis=1, keepdims=True)
+    near = a + 0.08 * np.cross(away, np.array([0.0, 0.0, 1.0])) / np.linalg.norm(
+        np.cross(away, np.array([0.0, 0.0, 1.0])), axis=1, keepdims=True)
+    beyond = a + 0.40 * away
+    d = lambda p, q: np.linalg.norm(p - q, axis=1).mean()
+    assert d(near, b) + d(beyond, a) < d(near, a) + d(beyond, b), 'the bare assignment would swap them'
+    report = evaluate(tmp_path, gt, np.stack([near, beyond], axis=1))
+    rows = {row['ground_truth']: row for row in report.per_joint}
+    assert rows['l_wrist']['found'] and rows['l_wrist']['predicted'] == 'joint_0'
+    assert rows['l_wrist']['error_m'] == pytest.approx(0.08, abs=1e-6)
+    assert report.n_matched == 1 and not rows['r_ankle']['found']

@@ -171,11 +171,13 @@ def evaluate_joints(pred: PredictedSkeleton, gt: GroundTruth, threshold_m: float
     skeleton that does not move scores <= 0, the truth 1); frame_coverage: scored frames
     with every joint finite / W; motion_skill: 1 - mean normalized error / mean true motion
     spread over matched joints; nonfinite_fraction: share of scored joint-frames missing.
-    per_joint: one row per true joint: found, the predicted joint, its error, offset along
-    the camera ray (+ = farther than the truth) and across it, along its limb
-    (`limb_directions`, + = towards the limb's far end; None where the limb has no length),
-    the offset-removed error, travel and static error. Read every error next to recall and
-    precision.
+    per_joint: one row per true joint: found, the predicted joint, its error; the nearest
+    predicted joint (mean distance over the frames, a miss costing as above) and the true
+    joint it was matched to, if any (a joint not found whose nearest answers another: the
+    skeleton has one joint where the truth has two); the offset along the camera ray (+ =
+    farther than the truth) and across it, along its limb (`limb_directions`, + = towards
+    the limb's far end; None where the limb has no length), the offset-removed error,
+    travel and static error. Read every error next to recall and precision.
     """
     if gt.joints.shape[1] == 0:
         raise EvaluationError('the ground truth has no joints (a captured mesh sequence?): '
@@ -210,7 +212,11 @@ def evaluate_joints(pred: PredictedSkeleton, gt: GroundTruth, threshold_m: float
     distances = np.linalg.norm(predicted[:, :, None, :] - truth[:, None, :, :], axis=-1)
     distances = np.where(finite[:, :, None], distances, miss_cost)
     cost = distances.mean(axis=0)                                          # (J, G)
-    rows, cols = linear_sum_assignment(cost) if n_pred else (np.zeros(0, int), np.zeros(0, int))
+    # gate first: a pair beyond the threshold must not buy a cheaper total for the others
+    # (the bare assignment can pair a joint 8 cm from the wrist with a joint 40 cm away,
+    # and drop both), so the assignment keeps the most pairs within it, then the nearest
+    gated = np.where(cost <= threshold, cost, 1e6 * max(threshold, 1e-9))
+    rows, cols = linear_sum_assignment(gated) if n_pred else (np.zeros(0, int), np.zeros(0, int))
     keep = cost[rows, cols] <= threshold
     rows, cols = rows[keep], cols[keep]
     match = np.full(n_gt, -1)
@@ -237,8 +243,18 @@ def evaluate_joints(pred: PredictedSkeleton, gt: GroundTruth, threshold_m: float
     rays /= np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-9)
     limbs = limb_directions(truth, gt.joint_parents)                       # (W, G, 3)
     normalized, spreads = [], []
+    # each true joint's nearest predicted joint (mean distance, misses costed): for a joint not
+    # found, whether the skeleton lacks a joint there (its nearest answers another true joint)
+    # or has one too far off
+    nearest = cost.argmin(axis=0) if n_pred else np.full(n_gt, -1)
+    answers = np.full(n_pred, -1)
+    answers[rows] = cols
     for g in range(n_gt):   # loop over true joints, not points
+        j = int(nearest[g])
         row = {'ground_truth': gt.joint_names[g], 'predicted': None, 'found': False,
+               'nearest_predicted': pred.joint_names[j] if j >= 0 else None,
+               'nearest_m': float(cost[j, g]) if j >= 0 else None,
+               'nearest_answers': gt.joint_names[answers[j]] if j >= 0 and answers[j] >= 0 else None,
                'found_5cm': bool(within[0.05][g]), 'found_10cm': bool(within[0.10][g]),
                'articulated': bool(articulated[g]), 'span_deg': float(spans[g]) if np.isfinite(spans[g]) else None,
                'moving': bool(moving[g]), 'tracks': bool(tracks[g]), 'travel_m': float(travel[g]),

@@ -41,7 +41,12 @@ def score_lines(result: dict, per_joint: bool) -> list:
                 kind = ' bends' if row['articulated'] else ''
                 kind += f' moves {_cm(row["travel_m"])} cm' if row['moving'] else ''
                 if not row['found']:
-                    lines.append(f'  {row["ground_truth"]:>14s} <- not found{kind}')
+                    nearest = ''
+                    if row.get('nearest_predicted') is not None:
+                        nearest = (f' (nearest {row["nearest_predicted"]} at {_cm(row["nearest_m"])} cm'
+                                   + (f', matched to {row["nearest_answers"]}' if row['nearest_answers'] else '')
+                                   + ')')
+                    lines.append(f'  {row["ground_truth"]:>14s} <- not found{nearest}{kind}')
                     continue
                 lines.append(f'  {row["ground_truth"]:>14s} <- {row["predicted"]:<10s} {_cm(row["error_m"])} / '
                              f'{_cm(row["normalized_error_m"])} / {_cm(row["offset_along_ray_m"])} / '
