@@ -396,3 +396,17 @@ def test_a_joint_within_the_threshold_is_not_given_up_for_a_cheaper_total(tmp_pa
     assert rows['l_wrist']['found'] and rows['l_wrist']['predicted'] == 'joint_0'
     assert rows['l_wrist']['error_m'] == pytest.approx(0.08, abs=1e-6)
     assert report.n_matched == 1 and not rows['r_ankle']['found']
+
+
+def test_joints_at_parts_that_do_not_bend_lower_the_articulated_precision(tmp_path, gt_pair):
+    """The true joints that bend, plus the ones that do not: precision stays 1 (every
+    predicted joint is some true joint), the articulated precision falls to the bending
+    share, which is what a skeleton cut through rigid parts looks like."""
+    gt = gt_pair[0]
+    everything = evaluate(tmp_path, gt, gt.joints)
+    bending = [g for g, row in enumerate(everything.per_joint) if row['articulated']]
+    assert 0 < len(bending) < len(gt.joint_names)
+    assert everything.precision == 1.0
+    assert everything.articulated_precision == pytest.approx(len(bending) / len(gt.joint_names))
+    only = evaluate(tmp_path, gt, gt.joints[:, bending])
+    assert only.articulated_precision == 1.0 and only.articulated_recall == 1.0

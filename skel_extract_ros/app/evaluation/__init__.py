@@ -13,7 +13,9 @@ fooled by, with a test for each in test/test_evaluation.py:
   "joints" score recall 1 but precision 0.01);
 - predicting joints that never bend: `articulated_recall` counts only the true joints
   whose rotation relative to their parent bone spans >= ARTICULATION_MIN_DEG within the
-  scored frames, the joints a motion-based method can find at all;
+  scored frames, the joints a motion-based method can find at all, and
+  `articulated_precision` the predicted joints matched to one of those (cuts through rigid
+  parts land within the threshold of a true joint that does not bend easily);
 - placing two joints in the middle of a bone shorter than the threshold: the articulated
   recall at 5 and 10 cm stands beside the 15 cm one;
 - standing still: `tracking_skill` compares the error on the joints that travel

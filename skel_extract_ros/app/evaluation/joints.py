@@ -46,6 +46,7 @@ class JointReport:
     n_frames: int
     threshold_m: float
     precision: float = 0.0
+    articulated_precision: float = float('nan')
     articulated_recall: float = float('nan')
     articulated_recall_5cm: float = float('nan')
     articulated_recall_10cm: float = float('nan')
@@ -162,6 +163,9 @@ def evaluate_joints(pred: PredictedSkeleton, gt: GroundTruth, threshold_m: float
     mean_error_m: mean over matched joints of the mean distance over the W frames (m);
     normalized_error_m: the same after removing each matched joint's mean offset (finite
     frames); recall: matched / ground-truth joints; precision: matched / predicted joints;
+    articulated_precision: those matched to a bending joint / predicted joints (a joint
+    matched to a true joint that does not bend here is one the motion cannot justify: a
+    cut through a rigid part lands near one of those easily, 15 cm from a dense skeleton);
     articulated_recall over the n_articulated joints that bend >= ARTICULATION_MIN_DEG in
     these frames (NaN without bone transforms), also counted with pairs within 5 and 10 cm
     (scaled like the threshold); moving joints (n_moving) travel >= MOVING_MIN_M from their
@@ -229,6 +233,7 @@ def evaluate_joints(pred: PredictedSkeleton, gt: GroundTruth, threshold_m: float
     report.recall = len(rows) / n_gt
     if not np.isnan(spans).all() and articulated.any():
         report.articulated_recall = float((match >= 0)[articulated].mean())
+        report.articulated_precision = float((match >= 0)[articulated].sum() / n_pred) if n_pred else 0.0
         report.articulated_recall_5cm = float(within[0.05][articulated].mean())
         report.articulated_recall_10cm = float(within[0.10][articulated].mean())
         report.missed_articulated = [gt.joint_names[g] for g in np.flatnonzero(articulated & (match < 0))]

@@ -25,7 +25,8 @@ def score_lines(result: dict, per_joint: bool) -> list:
                                                              if j['n_repeated_frames'] else ''))
         lines.append(f'  bending joints ({j["n_articulated"]}, >= 25 deg): recall {_ratio(j["articulated_recall"])} '
                      f'(within 10 cm {_ratio(j["articulated_recall_10cm"])}, '
-                     f'5 cm {_ratio(j["articulated_recall_5cm"])}); '
+                     f'5 cm {_ratio(j["articulated_recall_5cm"])}), '
+                     f'precision {_ratio(j.get("articulated_precision"))}; '
                      f'moving joints ({j["n_moving"]}, >= 10 cm): recall {_ratio(j["moving_recall"])}, '
                      f'tracking skill {_ratio(j["tracking_skill"])} (0 = holding each still)')
         lines.append(f'  error {_cm(j["mean_error_m"])} cm, offset removed {_cm(j["normalized_error_m"])} cm; '
