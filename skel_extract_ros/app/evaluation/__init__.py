@@ -4,9 +4,9 @@ Joint accuracy follows the paper (Sec. 7): the Euclidean distance error over the
 subset* of joints, with Helten et al.'s per-joint normalisation. Predicted and true joints
 are paired one-to-one (Hungarian assignment on the mean distance over the frames, the
 pairs within a threshold first), and a pair farther apart than the threshold does not count
-as found. What users downstream need
-is the joints that move, where the body bends, in every frame; what each number cannot be
-fooled by, with a test for each in test/test_evaluation.py:
+as found. What users downstream need is the joints that move, where the body bends, in
+every frame; what each number cannot be fooled by, with a test for each in
+test/test_evaluation.py:
 
 - predicting many joints: each true joint takes at most one, and `precision` (matched /
   predicted) and `n_predicted` stand beside every recall (2,000 surface points given as

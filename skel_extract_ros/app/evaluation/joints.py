@@ -164,8 +164,9 @@ def evaluate_joints(pred: PredictedSkeleton, gt: GroundTruth, threshold_m: float
     normalized_error_m: the same after removing each matched joint's mean offset (finite
     frames); recall: matched / ground-truth joints; precision: matched / predicted joints;
     articulated_precision: those matched to a bending joint / predicted joints (a joint
-    matched to a true joint that does not bend here is one the motion cannot justify: a
-    cut through a rigid part lands near one of those easily, 15 cm from a dense skeleton);
+    matched to a true joint that does not bend in these frames is one the motion cannot
+    justify; on a body of 21 joints a cut through a rigid part lands within the threshold
+    of one easily);
     articulated_recall over the n_articulated joints that bend >= ARTICULATION_MIN_DEG in
     these frames (NaN without bone transforms), also counted with pairs within 5 and 10 cm
     (scaled like the threshold); moving joints (n_moving) travel >= MOVING_MIN_M from their
