@@ -40,16 +40,22 @@ def test_bench_registration_runs_the_registration_and_the_skeleton_tracker():
     assert after_window['tracker'] < 0.5 * after_window['static'], after_window
 
 
+def _bench_real_motion():
+    """bench/bench_real_motion.py as a module (bench/ is not a package)."""
+    import importlib.util
+    spec = importlib.util.spec_from_file_location('bench_real_motion', REPO / 'bench' / 'bench_real_motion.py')
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    return bench
+
+
 def _row(subject, scene, half, recall, skill, error_m, base_scene='empty'):
     return {'subject': subject, 'scene': scene, 'base_scene': base_scene, 'half': half, 'true_joints': 21,
             'articulated_recall': recall, 'tracking_skill': skill, 'mean_error_m': error_m}
 
 
 def test_bench_real_motion_compares_each_half_and_seed_with_a_baseline():
-    import importlib.util
-    spec = importlib.util.spec_from_file_location('bench_real_motion', REPO / 'bench' / 'bench_real_motion.py')
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    bench = _bench_real_motion()
     baseline = [_row('wave', 'empty', 'tuning', 0.5, 0.2, 0.08), _row('run', 'empty', 'tuning', 0.3, 0.0, 0.10),
                 _row('wave', 'empty-seed1', 'tuning', 1.0, 0.4, 0.06), _row('cow', 'empty', 'check', 0.2, 0.0, 0.1),
                 _row('samba', 'empty', 'check', None, None, None) | {'true_joints': 0}]
@@ -79,10 +85,7 @@ def test_bench_real_motion_tells_a_joint_that_flips_by_structure_from_one_that_f
     (placement); the wrist once because its nearest joint answers the elbow (the skeleton
     has one joint for two: structure); the knee once with no joint within 30 cm
     (structure); the shoulder is found every time and the hip never (neither flips)."""
-    import importlib.util
-    spec = importlib.util.spec_from_file_location('bench_real_motion', REPO / 'bench' / 'bench_real_motion.py')
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    bench = _bench_real_motion()
     always = [_joint('shoulder', True), _joint('hip', False, 0.5)]
     variants = [[_joint('elbow', False, 0.20), _joint('wrist', True), _joint('knee', True)],
                 [_joint('elbow', True), _joint('wrist', False, 0.12, 'elbow'), _joint('knee', True)],
