@@ -15,8 +15,8 @@ frames and the new window (at most `max_key_frames`; until then, every frame). S
 
 Stable joints: joint b is the joint between bone b and its parent (the root's is its
 centre). After each update the root joint keeps the root's id, and the other new joints
-are matched (rest frame, Hungarian on distance) to every joint the model has ever had,
-within `joint_match_fraction` of the subject size; a matched joint keeps its id, a new
+are matched (rest frame, core.matching's gated assignment) to every joint the model has
+ever had, within `joint_match_fraction` of the subject size; a matched joint keeps its id, a new
 one gets the next id, and names are `joint_<id>`, so
 consumers keying on names see the same joint across updates. `GrowthUpdate.changes` says
 what changed: joints added, removed, re-parented, or moved by more than the match radius
@@ -28,9 +28,9 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
 
 from .joints import JointEstimate, JointEstimation, JointParams
+from .matching import gated_assignment
 from .parameters import parameter, validate
 from .rigid import fit_rigid_segments
 from .skeleton_model import SkeletonModel
@@ -239,12 +239,9 @@ class SkeletonGrowth:
             if len(previous_root):
                 cost[root] = np.inf
                 cost[:, previous_root[0]] = np.inf
-            cost[~np.isfinite(cost)] = 1e12
-            # gate first: a pair beyond the gate must not buy a cheaper total for the others
-            cost = np.where(cost <= 1.0, cost, 1e6 * (1.0 + np.minimum(cost, 1e6)))
-            rows, cols = linear_sum_assignment(cost)
-            close = (cost[rows, cols] <= 1.0) & (ids[rows] < 0)
-            ids[rows[close]] = cols[close]
+            rows, cols = gated_assignment(cost, 1.0)
+            free = ids[rows] < 0
+            ids[rows[free]] = cols[free]
         new = np.flatnonzero(ids < 0)
         ids[new] = len(self.known_positions) + np.arange(len(new))
         self.known_positions = np.vstack([self.known_positions, joints[new]])

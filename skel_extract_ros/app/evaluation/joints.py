@@ -5,8 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
 
+from ...core.matching import gated_assignment
 from .data import EvaluationError, GroundTruth, PredictedSkeleton, match_frames
 
 DEFAULT_MATCH_THRESHOLD_M = 0.15
@@ -217,13 +217,9 @@ def evaluate_joints(pred: PredictedSkeleton, gt: GroundTruth, threshold_m: float
     distances = np.linalg.norm(predicted[:, :, None, :] - truth[:, None, :, :], axis=-1)
     distances = np.where(finite[:, :, None], distances, miss_cost)
     cost = distances.mean(axis=0)                                          # (J, G)
-    # gate first: a pair beyond the threshold must not buy a cheaper total for the others
-    # (the bare assignment can pair a joint 8 cm from the wrist with a joint 40 cm away,
-    # and drop both), so the assignment keeps the most pairs within it, then the nearest
-    gated = np.where(cost <= threshold, cost, 1e6 * max(threshold, 1e-9))
-    rows, cols = linear_sum_assignment(gated) if n_pred else (np.zeros(0, int), np.zeros(0, int))
-    keep = cost[rows, cols] <= threshold
-    rows, cols = rows[keep], cols[keep]
+    # the most pairs within the threshold, then the nearest (the bare assignment can pair a
+    # joint 8 cm from the wrist with a joint 40 cm away, and drop both)
+    rows, cols = gated_assignment(cost, threshold)
     match = np.full(n_gt, -1)
     match[cols] = rows
     error = np.where(match >= 0, cost[np.maximum(match, 0), np.arange(n_gt)], np.nan)   # (G,)
