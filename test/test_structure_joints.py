@@ -9,7 +9,7 @@ from scipy.spatial.transform import Rotation
 
 from skel_extract_ros.core.articulated import BoneBlocks
 from skel_extract_ros.core.joints import JointEstimation, JointParams, simplex_least_squares
-from skel_extract_ros.core.rigid import fit_rigid_segments
+from skel_extract_ros.core.rigid import fit_rigid_segments, turn_spans
 from skel_extract_ros.core.joint_centres import boundary_centroids, medial_anchors, pivot_evidence, solve_joints
 from skel_extract_ros.core.structure import (StructureError, StructureParams, _neighbour_graph, _residuals,
                                              extract_structure, split_evidence)
@@ -483,3 +483,12 @@ def test_the_learned_skeleton_carries_the_pivot_evidence_of_its_joints():
     document = model.to_json(np.zeros(1), estimate.joint_trajectories()[:1], 'camera')
     assert document['pivot']['fixed'][child] is True
     assert document['pivot']['fixed'][structure.root] is None
+
+
+def test_turn_spans_are_the_largest_turn_between_two_frames():
+    parent = Rotation.from_rotvec([[0.0, 0.3, 0.0]] * 3).as_matrix()                  # (F, 3, 3)
+    turns = Rotation.from_rotvec(np.radians([[0, 0, 0], [0, 0, 10], [0, 0, -15]])).as_matrix()
+    rotations = np.stack([parent, parent @ turns], axis=1)                              # (F, 2, 3, 3)
+    spans = turn_spans(rotations, np.array([-1, 0]))
+    assert spans[0] == 0.0 and spans[1] == pytest.approx(25.0, abs=1e-6)
+

@@ -85,3 +85,20 @@ def fit_weighted_segments(rest: np.ndarray, frames: np.ndarray, membership: spar
     rotations[:, counts == 0] = np.eye(3)
     translations = frame_centres - np.einsum('fsij,sj->fsi', rotations, rest_centres)
     return rotations, translations
+
+
+def turn_spans(rotations: np.ndarray, parents: np.ndarray) -> np.ndarray:
+    """(B,) degrees: for each bone, the largest angle between two frames' rotations of it
+    relative to its parent (rotations (F, B, 3, 3), rest -> frame; parents (B,), -1 at the
+    root, whose span is 0): how far the joint turned over the frames."""
+    rotations = np.asarray(rotations, dtype=np.float64)
+    spans = np.zeros(len(parents))
+    for bone, parent in enumerate(np.asarray(parents, dtype=int)):    # over bones: (F, F) each
+        if parent < 0:
+            continue
+        relative = np.einsum('fji,fjk->fik', rotations[:, parent], rotations[:, bone])     # (F, 3, 3)
+        # trace(R_a^T R_b) = 1 + 2 cos(angle between frames a and b): the largest angle has
+        # the smallest trace
+        traces = np.einsum('aji,bji->ab', relative, relative)
+        spans[bone] = np.degrees(np.arccos(np.clip((traces.min() - 1.0) / 2.0, -1.0, 1.0)))
+    return spans

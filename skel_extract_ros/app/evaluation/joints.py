@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ...core.matching import gated_assignment
+from ...core.rigid import turn_spans
 from .data import EvaluationError, GroundTruth, PredictedSkeleton, match_frames
 
 DEFAULT_MATCH_THRESHOLD_M = 0.15
@@ -74,18 +75,8 @@ def articulation_spans(gt: GroundTruth, gt_idx: np.ndarray) -> np.ndarray:
     n_joints = gt.joints.shape[1]
     if gt.bone_transforms is None or gt.joint_bones is None or gt.bone_parents is None:
         return np.full(n_joints, np.nan)
-    rotations = gt.bone_transforms[gt_idx][..., :3, :3].astype(np.float64)     # (F, B, 3, 3)
-    spans = np.zeros(n_joints)
-    for g, bone in enumerate(np.asarray(gt.joint_bones, dtype=int)):   # loop over joints, not points
-        parent = int(gt.bone_parents[bone])
-        if parent < 0:
-            continue
-        relative = np.einsum('fji,fjk->fik', rotations[:, parent], rotations[:, bone])  # (F, 3, 3)
-        # angle between every pair of frames: trace(R_a^T R_b) = 1 + 2 cos(angle); the
-        # largest angle has the smallest trace
-        traces = np.einsum('aji,bji->ab', relative, relative)
-        spans[g] = np.degrees(np.arccos(np.clip((traces.min() - 1.0) / 2.0, -1.0, 1.0)))
-    return spans
+    rotations = gt.bone_transforms[gt_idx][..., :3, :3]                       # (F, B, 3, 3)
+    return turn_spans(rotations, gt.bone_parents)[np.asarray(gt.joint_bones, dtype=int)]
 
 
 def geometric_median(trajectories: np.ndarray, iterations: int = 100) -> np.ndarray:
