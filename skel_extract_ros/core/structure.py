@@ -19,7 +19,12 @@
    - paper rule 2: loops cannot occur, the graph is a spanning tree rebuilt after each
      change;
    - paper rule 3: two adjacent joints closer than `joint_merge_fraction` of the subject
-     size are merged (the short bone between them goes to its parent).
+     size are merged (the short bone between them goes to its parent);
+   - optionally (`min_turn_deg`), once no other rule removes a bone: the joint whose two
+     bones turn least against each other over the window (the largest angle between two
+     frames' relative rotations, core.rigid.turn_spans) is merged while that turn is under
+     the threshold: a cut through a part that sways a few degrees (a torso) is a joint by
+     evidence but not one that bends.
 5. Initial joint locations c_jk minimise E_Joint (Sec. 6.3, the joint term of Eq. 12a) for
    the fitted transforms:
    eta |c - c~|^2 + sum_t |(R_j^t - R_k^t) c + T_j^t - T_k^t|^2, c~ the centroid of the
@@ -33,8 +38,11 @@ Eq. 10) displaces its points by an RMS `d` per frame, and for clusters turning a
 other by an angle theta about a joint, d ~ theta x r, r the RMS distance of their points from
 their centre. The noise is measured on the sequence: `noise`, the RMS residual per point and
 frame of every cluster's own rigid fit (median over points: what the registration leaves
-when nothing bends). Noise alone turns two clusters against each other by about noise / r,
-so the evidence for a joint is the ratio
+when nothing bends; with `evidence_noise: clusters`, the same of the K-means clusters after
+the relabelling rounds, measured once: as bones merge, a part that sways a little (a torso
+over the legs) leaves its sway in its one rigid fit, and the bones' noise rises with it).
+Noise alone turns two clusters against each other by about noise / r, so the evidence for a
+joint is the ratio
     split_evidence = (d / r) / (noise / r) = d / noise,
 relative rotation over the rotation noise produces at that size: scale-free, so the same
 `motion_noise_factor` serves a hand, a body and a cow. The bone with the least evidence is
@@ -60,7 +68,7 @@ from .joint_centres import (PivotEvidence, boundary_centroids, joint_trajectorie
                              solve_joints)
 from .parameters import INF, parameter, validate
 from .point_sets import median_spacing
-from .rigid import fit_rigid_segments, segment_matrix
+from .rigid import fit_rigid_segments, segment_matrix, turn_spans
 
 
 class StructureError(ValueError):
@@ -92,6 +100,13 @@ class StructureParams:
                                          'the points are dropped, a fraction', 0.0, 1.0)
     joint_merge_fraction: float = parameter(0.03, 'paper rule 3: joints closer than this x the subject size are '
                                             'merged, a fraction', 0.0, 1.0)
+    evidence_noise: str = parameter('bones', 'the noise the split evidence divides by: bones (the '
+                                    "current bones' rigid-fit residual, again at each refinement pass) or "
+                                    "clusters (the K-means clusters' after the relabelling rounds, once: "
+                                    'small parts, nearly rigid)', choices=('bones', 'clusters'))
+    min_turn_deg: float = parameter(0.0, 'once the other rules keep every bone, a joint whose two bones turn '
+                                    'against each other by less than this over the window is merged, the least '
+                                    'turn first (0 = off), degrees', 0.0, 180.0)
     eta: float = parameter(1.0, 'weight of the joint data term in the Step 2 joint solve (Table 1), '
                            'dimensionless', 0.0, INF)
     max_key_frames: int = parameter(90, 'the growing skeleton is learned from at most this many frames, the most '
@@ -242,16 +257,23 @@ def _own_motion(residual: np.ndarray, labels: np.ndarray, parents: np.ndarray, n
     return result
 
 
+def rigid_fit_noise(residual: np.ndarray, labels: np.ndarray, n_frames: int, size: float = 1.0) -> float:
+    """m: the median over the points of the RMS residual per frame of their own bone's rigid
+    fit (residual (M, B) as _residuals; labels (M,)). size: the subject's size (m), for the
+    floor: 1e-6 of it is float64 round-off in the expanded residuals, not registration
+    noise (an exactly rigid sequence)."""
+    own = residual[np.arange(len(labels)), labels]
+    return max(np.sqrt(float(np.median(own)) / n_frames), 1e-6 * size)
+
+
 def split_evidence(residual: np.ndarray, labels: np.ndarray, parents: np.ndarray, n_frames: int,
-                   size: float = 1.0) -> np.ndarray:
+                   size: float = 1.0, noise: float | None = None) -> np.ndarray:
     """(B,) for each bone, its relative rotation against its parent over the window in units
     of the rotation the registration noise produces (module docstring, "Split evidence"):
-    the swap displacement (`_own_motion`) over the median RMS residual per point and frame
-    of the bones' own rigid fits. inf for the root. residual (M, B) as _residuals; size:
-    the subject's size (m), for the floor of the noise: 1e-6 of it is float64 round-off
-    in the expanded residuals, not registration noise (an exactly rigid sequence)."""
-    own = residual[np.arange(len(labels)), labels]
-    noise = max(np.sqrt(float(np.median(own)) / n_frames), 1e-6 * size)
+    the swap displacement (`_own_motion`) over `noise` (m; None: `rigid_fit_noise` of these
+    bones). inf for the root. residual (M, B) as _residuals; size: the subject's size (m)."""
+    if noise is None:
+        noise = rigid_fit_noise(residual, labels, n_frames, size)
     return _own_motion(residual, labels, parents, n_frames) / noise
 
 
@@ -304,6 +326,11 @@ def extract_structure(rest: np.ndarray, registered: np.ndarray, params: Structur
         labels = _compact(np.argmin(residual, axis=1))
         labels = _compact(_majority(labels, adjacency, labels.max() + 1))
 
+    cluster_noise = None
+    if params.evidence_noise == 'clusters':
+        rotations, translations = fit_rigid_segments(rest, registered, labels, labels.max() + 1)
+        cluster_noise = rigid_fit_noise(_residuals(rest, registered, rotations, translations), labels,
+                                        len(registered), size)
     for _ in range(4 * K):  # refinement until stable; each pass removes one bone at most
         B = labels.max() + 1
         rotations, translations = fit_rigid_segments(rest, registered, labels, B)
@@ -317,7 +344,7 @@ def extract_structure(rest: np.ndarray, registered: np.ndarray, params: Structur
         small = np.flatnonzero(counts < params.min_bone_fraction * M)
         if len(small):
             remove = int(small[np.argmin(counts[small])])
-        evidence = split_evidence(residual, labels, parents, len(registered), size)
+        evidence = split_evidence(residual, labels, parents, len(registered), size, cluster_noise)
         if remove is None:
             still = np.flatnonzero(evidence < params.motion_noise_factor)
             if len(still):
@@ -336,6 +363,12 @@ def extract_structure(rest: np.ndarray, registered: np.ndarray, params: Structur
                 if parents[p] >= 0 and np.linalg.norm(joints[b] - joints[p]) < params.joint_merge_fraction * size:
                     remove = int(p)   # the short bone between the two joints
                     break
+        if remove is None and params.min_turn_deg > 0:
+            # last, on the bones every other rule keeps: during the refinement a joint's turn
+            # is shared by the small bones across it, each turning less than the joint
+            turns = np.where(parents >= 0, turn_spans(rotations, parents), np.inf)
+            if turns.min() < params.min_turn_deg:
+                remove = int(np.argmin(turns))
         if remove is None:
             break
         # hand the removed bone's points to the remaining bone that fits each best
