@@ -16,11 +16,10 @@ frames and the new window (at most `max_key_frames`; until then, every frame). S
 Stable joints: joint b is the joint between bone b and its parent (the root's is its
 centre). After each update the root joint keeps the root's id, and the other new joints
 are matched (rest frame, core.matching's gated assignment) to every joint the model has
-ever had, within `joint_match_fraction` of the subject size; a matched joint keeps its id, a new
-one gets the next id, and names are `joint_<id>`, so
-consumers keying on names see the same joint across updates. `GrowthUpdate.changes` says
-what changed: joints added, removed, re-parented, or moved by more than the match radius
-over two.
+ever had, within `joint_match_fraction` of the subject size; a matched joint keeps its id,
+a new one gets the next id, and names are `joint_<id>`, so consumers keying on names see
+the same joint across updates. `GrowthUpdate.changes` says what changed: joints added,
+removed, re-parented, or moved by more than the match radius over two.
 """
 from __future__ import annotations
 
