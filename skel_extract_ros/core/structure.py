@@ -327,14 +327,13 @@ def extract_structure(rest: np.ndarray, registered: np.ndarray, params: Structur
         labels = _compact(_majority(labels, adjacency, labels.max() + 1))
 
     cluster_noise = None
-    if params.evidence_noise == 'clusters':
-        rotations, translations = fit_rigid_segments(rest, registered, labels, labels.max() + 1)
-        cluster_noise = rigid_fit_noise(_residuals(rest, registered, rotations, translations), labels,
-                                        len(registered), size)
     for _ in range(4 * K):  # refinement until stable; each pass removes one bone at most
         B = labels.max() + 1
         rotations, translations = fit_rigid_segments(rest, registered, labels, B)
         residual = _residuals(rest, registered, rotations, translations)
+        if params.evidence_noise == 'clusters' and cluster_noise is None:
+            # the first pass fits the clusters the relabelling rounds left
+            cluster_noise = rigid_fit_noise(residual, labels, len(registered), size)
         if B == 1:
             parents = np.array([-1])
             break
