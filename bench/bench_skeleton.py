@@ -2,7 +2,7 @@
 """Skeleton benchmark: joints after Step 2, after Step 3, and with Dem Bones (SSDR) as peer.
 
     python bench/bench_skeleton.py [--frames 90] [--subjects human,upper_body,arm,hand,fish]
-                                   [--n-clusters K]
+                                   [--n-clusters K] [--params FILE]
 
 For each simulated subject (320x240, Kinect noise) the sequence is registered once (Step
 0-1) and learned once on every registered frame (a growth window as long as the sequence);
@@ -15,7 +15,10 @@ transforms then turned into joints by the same joint solve (E_Joint); and (d) St
 again on those key frames with the paper's joint anchors (the boundary centroid on the
 visible surface, anchor_depth=surface) instead of the default medial anchors. The scores are
 the real-motion yardstick's (`evaluate_joints`). Prints a Markdown table; `--json FILE`
-keeps the raw numbers. Needs the `bench` extra.
+keeps the raw numbers. `--params FILE` (the parameter YAML `skel-extract run` takes) runs
+every step with its values instead of the defaults, so a variant measured on real motion
+(`bench_real_motion.py --params`) is checked on these bodies with the same file. Needs the
+`bench` extra.
 """
 from __future__ import annotations
 
@@ -31,6 +34,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from skel_extract_ros.config import load_params_file, pipeline_params  # noqa: E402
 from skel_extract_ros.core.growth import GrowthSchedule  # noqa: E402
 from skel_extract_ros.core.joints import JointEstimation  # noqa: E402
 from skel_extract_ros.core.pipeline import SkeletonPipeline  # noqa: E402
@@ -97,9 +101,15 @@ def main() -> int:
                         help="skip Steps 2-3 with the paper's surface anchors (anchor_depth=surface)")
     parser.add_argument('--n-clusters', type=int, default=None,
                         help="Step 2's K-means clusters (default: StructureParams' default)")
+    parser.add_argument('--params', default=None,
+                        help="a parameter YAML for skel-extract run: its values instead of the defaults")
     parser.add_argument('--json', default=None)
     args = parser.parse_args()
-    structure_params = StructureParams() if args.n_clusters is None else StructureParams(n_clusters=args.n_clusters)
+    settings = pipeline_params(load_params_file(args.params)) if args.params else {}
+    structure_params = settings.pop('structure', StructureParams())
+    if args.n_clusters is not None:
+        structure_params = dataclasses.replace(structure_params, n_clusters=args.n_clusters)
+    settings.pop('schedule', None)      # here the window is the whole sequence
     rows = []
     print('| subject | true joints | method | joints found | mean_error_m | normalized_error_m | recall | '
           'precision | artic. recall | moving recall | tracking skill | seconds |')
@@ -109,7 +119,8 @@ def main() -> int:
         g = seq.ground_truth
         gt = GroundTruth.from_arrays(g)
         # learned once, on every registered frame (a window as long as the sequence)
-        pipeline = SkeletonPipeline(structure=structure_params, schedule=GrowthSchedule(window_size=args.frames))
+        pipeline = SkeletonPipeline(structure=structure_params, schedule=GrowthSchedule(window_size=args.frames),
+                                    **settings)
         started = time.perf_counter()
         # organized clouds, as a camera gives them: the subject segmentation (on by
         # default) then finds the subject from the second frame on
@@ -131,7 +142,7 @@ def main() -> int:
             started = time.perf_counter()
             surface = extract_structure(rest, window, dataclasses.replace(structure_params, anchor_depth='surface'))
             middle = time.perf_counter()
-            estimate = JointEstimation().fit(rest, window, observed, surface)
+            estimate = JointEstimation(pipeline.joint_params).fit(rest, window, observed, surface)
             entries += [('step 2, surface anchors', surface.joint_trajectories(), surface.parents,
                          middle - started, key_frames),
                         ('step 3, surface anchors', estimate.joint_trajectories(), estimate.parents,

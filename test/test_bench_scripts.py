@@ -1,7 +1,7 @@
 """The benchmark scripts still run against the code they measure: each on one small
 built-in subject and a few frames (their numbers are the benchmarks' business, in
 bench/README.md; this catches a script the code moved under, as the growth window once
-did to bench_skeleton.py); the real-motion bench's comparison of two runs adds up, and the
+did to bench_skeleton.py), the skeleton bench with a parameter file; the real-motion bench's comparison of two runs adds up, and the
 realtime bench's extra parameters merge over its window's."""
 import subprocess
 import sys
@@ -26,6 +26,16 @@ def test_bench_skeleton_scores_steps_2_and_3():
         found, mean_error, recall = int(row[3]), float(row[4]), float(row[6])
         # the arm's two true joints are found, well within the arm's length
         assert found >= 2 and recall == 1.0 and mean_error < 0.1, row
+
+
+def test_bench_skeleton_runs_with_a_parameter_file(tmp_path):
+    # every cut is kept when a joint needs no evidence: the file's value reaches Step 2
+    params = tmp_path / 'params.yaml'
+    params.write_text('accumulator_node:\n  ros__parameters:\n    motion_noise_factor: 0.0\n')
+    args = ('--frames', '24', '--subjects', 'arm', '--no-dem-bones', '--no-surface')
+    default = _table_rows('bench_skeleton.py', *args)
+    every_cut = _table_rows('bench_skeleton.py', *args, '--params', str(params))
+    assert int(every_cut[0][3]) > int(default[0][3]), (every_cut[0], default[0])
 
 
 def test_bench_registration_runs_the_registration_and_the_skeleton_tracker():
