@@ -1,8 +1,9 @@
 """The benchmark scripts still run against the code they measure: each on one small
 built-in subject and a few frames (their numbers are the benchmarks' business, in
 bench/README.md; this catches a script the code moved under, as the growth window once
-did to bench_skeleton.py), the skeleton bench with a parameter file; the real-motion bench's comparison of two runs adds up, and the
-realtime bench's extra parameters merge over its window's."""
+did to bench_skeleton.py), the skeleton bench with a parameter file too; the real-motion
+bench's comparison of two runs adds up, and the realtime bench's extra parameters merge
+over its window's."""
 import subprocess
 import sys
 from pathlib import Path
