@@ -1,6 +1,7 @@
 """Where the joint error comes from: Steps 2 and 3 on the registration, and on a perfect one.
 
     python bench/bench_joint_sources.py [--only wave,run] [--scenes empty] [--frames 90] [--work DIR]
+                                        [--params FILE]
 
 For each real clip (the subjects of bench_real_motion.py; the bags are simulated into --work
 or reused from it), the registration runs once as `skel-extract run` runs it; then Steps 2
@@ -15,7 +16,9 @@ the structure's and the joint placement's. Two more rows split the gap: each ske
 learned skeleton to the frames after its window (core.live.LiveJointTracker on every
 frame): *registered skeleton, perfect motion* is what the skeleton learned on the
 registration costs; *perfect skeleton, registered motion* is what the registration's
-frames cost a skeleton that is right.
+frames cost a skeleton that is right. `--params FILE` (the parameter YAML `skel-extract run`
+takes) runs every step with its values instead of the defaults (the growth window stays
+the whole clip).
 """
 from __future__ import annotations
 
@@ -32,6 +35,7 @@ sys.path.insert(0, str(REPO / 'bench'))
 
 from bench_real_motion import half, simulate_and_run, subjects  # noqa: E402
 from skel_extract_ros.codecs.bag import read_cloud_frames, select_cloud_topic  # noqa: E402
+from skel_extract_ros.config import load_params_file, pipeline_params  # noqa: E402
 from skel_extract_ros.core.growth import GrowthSchedule  # noqa: E402
 from skel_extract_ros.core.live import LiveJointTracker  # noqa: E402
 from skel_extract_ros.core.pipeline import SkeletonPipeline  # noqa: E402
@@ -43,12 +47,13 @@ from skel_extract_ros.app.evaluation.registration import _material_trajectories 
 SOURCES = ('registered', 'perfect', 'registered skeleton, perfect motion', 'perfect skeleton, registered motion')
 
 
-def joint_scores(bag: Path) -> dict:
-    """{source: JointReport} for one bag, the sources as SOURCES."""
+def joint_scores(bag: Path, settings: dict | None = None) -> dict:
+    """{source: JointReport} for one bag, the sources as SOURCES; settings: SkeletonPipeline's
+    keyword arguments but the schedule (config.pipeline_params)."""
     topic = select_cloud_topic(bag)
     frames = list(read_cloud_frames(bag, topic))
     stamps = np.array([f.stamp for f in frames])
-    pipeline = SkeletonPipeline(schedule=GrowthSchedule(window_size=len(frames) + 1))
+    pipeline = SkeletonPipeline(schedule=GrowthSchedule(window_size=len(frames) + 1), **(settings or {}))
     registered = pipeline.register(f.points.reshape(f.height, f.width, 3) if f.height > 1 else f.points
                                    for f in frames)
     gt = GroundTruth.load(bag / 'gt.npz')
@@ -96,7 +101,11 @@ def main() -> int:
     parser.add_argument('--scenes', default='empty')
     parser.add_argument('--frames', type=int, default=90)
     parser.add_argument('--work', default=None, help='bags are simulated here, or reused when present')
+    parser.add_argument('--params', default=None,
+                        help="a parameter YAML for skel-extract run: its values instead of the defaults")
     args = parser.parse_args()
+    settings = pipeline_params(load_params_file(args.params)) if args.params else {}
+    settings.pop('schedule', None)      # here the window is the whole clip
     chosen = [(n, a) for n, a in subjects([o for o in args.only.split(',') if o]) if n not in ('samba',)]
     if not chosen:
         print('no real-motion data; nothing to benchmark')
@@ -111,7 +120,7 @@ def main() -> int:
             bag = work / f'{name}_{scene}'
             if not (bag / 'gt.npz').is_file():
                 simulate_and_run(name, source_args, scene, args.frames, work)
-            scores = joint_scores(bag)
+            scores = joint_scores(bag, settings)
             for source in SOURCES:
                 print(_row(name, scene, source, scores[source]), flush=True)
     return 0
