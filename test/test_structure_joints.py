@@ -493,7 +493,6 @@ def test_turn_spans_are_the_largest_turn_between_two_frames():
     assert spans[0] == 0.0 and spans[1] == pytest.approx(25.0, abs=1e-6)
 
 
-
 def test_a_joint_that_turns_less_than_min_turn_deg_is_merged():
     # a 3 degree bend is a joint on evidence (above); asked for joints that turn at least
     # 10 degrees, it is merged and nothing is left to separate
@@ -509,9 +508,10 @@ def test_a_joint_that_turns_less_than_min_turn_deg_is_merged():
 
 
 def _swaying_torso_and_waving_wrist(sway_deg, wave_deg, noise, n_frames=40, seed=0):
-    """A 1 m torso (2000 points) over 1 m legs (2000 points) that sways 5 degrees about the
-    hips, and a 20 cm hand (400 points) on a forearm (400 points) turning 12 degrees at the
-    wrist; 2 mm of noise. Returns rest (M, 3), registered (F, M, 3), true part (M,)."""
+    """A 1 m torso (2000 points) over 1 m legs (2000 points) that sways by up to sway_deg
+    about the hips, and a 20 cm hand (400 points) on a forearm (400 points) turning by
+    wave_deg at the wrist; i.i.d. noise (m). Returns rest (M, 3), registered (F, M, 3), true
+    part (M,)."""
     rng = np.random.default_rng(seed)
     def cylinder(n, start, end, radius):
         along = rng.uniform(0, 1, n)[:, None]
