@@ -1,7 +1,7 @@
 """Where the joint error comes from: Steps 2 and 3 on the registration, and on a perfect one.
 
     python bench/bench_joint_sources.py [--only wave,run] [--scenes empty] [--frames 90] [--work DIR]
-                                        [--params FILE]
+                                        [--params FILE] [--lost-frame-cm 6]
 
 For each real clip (the subjects of bench_real_motion.py; the bags are simulated into --work
 or reused from it), the registration runs once as `skel-extract run` runs it; then Steps 2
@@ -44,12 +44,15 @@ from skel_extract_ros.app.evaluation import (GroundTruth, PredictedSkeleton, eva
 from skel_extract_ros.app.evaluation.registration import _material_trajectories  # noqa: E402
 
 
-SOURCES = ('registered', 'perfect', 'registered skeleton, perfect motion', 'perfect skeleton, registered motion')
+SOURCES = ('registered', 'perfect', 'registered skeleton, perfect motion', 'perfect skeleton, registered motion',
+           'lost frames made perfect')
 
 
-def joint_scores(bag: Path, settings: dict | None = None) -> dict:
-    """{source: JointReport} for one bag, the sources as SOURCES; settings: SkeletonPipeline's
-    keyword arguments but the schedule (config.pipeline_params)."""
+def joint_scores(bag: Path, settings: dict | None = None, lost_frame_m: float = 0.06) -> tuple:
+    """({source: JointReport} for one bag, the sources as SOURCES; the number of lost frames
+    and of frames scored); settings: SkeletonPipeline's keyword arguments but the schedule
+    (config.pipeline_params); lost_frame_m: a frame whose registered points' error has its
+    95th percentile above this (m) is lost."""
     topic = select_cloud_topic(bag)
     frames = list(read_cloud_frames(bag, topic))
     stamps = np.array([f.stamp for f in frames])
@@ -72,8 +75,13 @@ def joint_scores(bag: Path, settings: dict | None = None) -> dict:
                                      stamps[result.frames], positions)
         return evaluate_joints(skeleton, gt, None, *span)
 
+    error = np.linalg.norm(registered[first:] - perfect[first:], axis=2)
+    lost = first + np.flatnonzero(np.percentile(error, 95, axis=1) > lost_frame_m)
+    mended = registered.astype(np.float64)
+    mended[lost] = perfect[lost]
+
     scores, results = {}, {}
-    for name, points in (('registered', registered), ('perfect', perfect)):
+    for name, points in (('registered', registered), ('perfect', perfect), ('lost frames made perfect', mended)):
         result = results[name] = pipeline.extract(points)
         scores[name] = scored(result, result.joint_positions)
     for learned_on, fitted_to, points in (('registered', 'perfect', perfect), ('perfect', 'registered', registered)):
@@ -81,14 +89,14 @@ def joint_scores(bag: Path, settings: dict | None = None) -> dict:
         fit = LiveJointTracker(result.model, pipeline.joint_params)
         positions = np.stack([fit.track(points[frame]) for frame in result.frames])
         scores[f'{learned_on} skeleton, {fitted_to} motion'] = scored(result, positions)
-    return scores
+    return scores, len(lost), len(registered) - first
 
 
-def _row(name: str, scene: str, source: str, report) -> str:
+def _row(name: str, scene: str, source: str, report, label: str | None = None) -> str:
     found = [j for j in report.per_joint if j['found']]
     along = np.mean([j['offset_along_ray_m'] for j in found]) if found else float('nan')
     across = np.mean([j['offset_across_ray_m'] for j in found]) if found else float('nan')
-    return (f'| {name} | {scene} | {half(name)} | {source} | {report.n_predicted} | '
+    return (f'| {name} | {scene} | {half(name)} | {label or source} | {report.n_predicted} | '
             f'{report.articulated_recall:.2f} / {report.articulated_recall_10cm:.2f} / '
             f'{report.articulated_recall_5cm:.2f} | {report.precision:.2f} | {100 * report.mean_error_m:.1f} / '
             f'{100 * report.normalized_error_m:.1f} | {100 * along:.1f} / {100 * across:.1f} | '
@@ -103,6 +111,9 @@ def main() -> int:
     parser.add_argument('--work', default=None, help='bags are simulated here, or reused when present')
     parser.add_argument('--params', default=None,
                         help="a parameter YAML for skel-extract run: its values instead of the defaults")
+    parser.add_argument('--lost-frame-cm', type=float, default=6.0,
+                        help="a frame is lost when the 95th percentile of its registered points' error is above "
+                             'this (cm)')
     args = parser.parse_args()
     settings = pipeline_params(load_params_file(args.params)) if args.params else {}
     settings.pop('schedule', None)      # here the window is the whole clip
@@ -120,9 +131,10 @@ def main() -> int:
             bag = work / f'{name}_{scene}'
             if not (bag / 'gt.npz').is_file():
                 simulate_and_run(name, source_args, scene, args.frames, work)
-            scores = joint_scores(bag, settings)
+            scores, n_lost, n_frames = joint_scores(bag, settings, args.lost_frame_cm / 100.0)
             for source in SOURCES:
-                print(_row(name, scene, source, scores[source]), flush=True)
+                label = f'{n_lost} of {n_frames} {source}' if source == SOURCES[-1] else None
+                print(_row(name, scene, source, scores[source], label), flush=True)
     return 0
 
 
