@@ -96,6 +96,33 @@ def test_node_in_a_room_waits_for_the_subject_and_registers_only_it(ros, walk_in
     ros.wait(lambda: len(filtered) == len(walk_in.clouds) + 1, what='frame after the reset')
 
 
+def test_a_frame_slow_to_segment_is_not_taken_for_a_pause(ros, walk_in):
+    """The rest pose is chosen from the frames held once the stream pauses; a frame that
+    takes longer than that pause to segment (a loaded machine) is still the stream: the
+    choice waits for it and the frames after it, as `run` does."""
+    import time
+    from skel_extract_ros.nodes.registration_stages import CHOICE_QUIET_S
+    node = registration_node(ros)
+    finder, calls = node.stages.subject_finder, []
+
+    def slow_tenth_frame(raw, height, width):
+        calls.append(len(calls))
+        if len(calls) == 11:     # the subject in view, frames held for the choice
+            time.sleep(2.0 * CHOICE_QUIET_S)
+        return finder(raw, height, width)
+
+    node.stages.subject_finder = slow_tenth_frame
+    registered = ros.listen('registered_points', PointCloud2, STREAM_QOS)
+    filtered = ros.listen('filtered_points', PointCloud2, STREAM_QOS)
+    pub = ros.publisher('points', PointCloud2, QoSProfile(depth=10))
+    ros.wait_matched(pub)
+    for i, (points, stamp) in enumerate(zip(walk_in.clouds, walk_in.stamps_ns)):
+        pub.publish(cloud(points, stamp))
+        ros.wait(lambda: len(filtered) == i + 1 and node.stages.processed == i + 1, what=f'frame {i} handled')
+    assert len(calls) == len(walk_in.clouds)
+    check_against_offline(ros, walk_in, filtered, registered, walk_in.clouds)
+
+
 def test_node_reads_depth_images(ros, walk_in):
     node = registration_node(ros, input='depth_image')
     registered = ros.listen('registered_points', PointCloud2, STREAM_QOS)

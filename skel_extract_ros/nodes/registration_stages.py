@@ -33,9 +33,11 @@ from .registration_process import (REST_POSE_IDLE_RELEASE_S, ChildProcessDied, R
 from .worker import Worker
 
 
-# No subject frame for this long while frames are held for the rest pose's choice: the
-# stream ended or paused, and the choice is made from the frames held. Ten frame
-# intervals of the slowest usual depth camera (15 Hz), so a live camera never hits it.
+# No cloud received and none in either stage for this long while frames are held for the
+# rest pose's choice: the stream ended or paused, and the choice is made from the frames
+# held. Ten frame intervals of the slowest usual depth camera (15 Hz), so a live camera
+# never hits it; counted from the last frame finished too, so a slow segmentation is not
+# taken for a pause.
 CHOICE_QUIET_S = 0.7
 # the registration stage's item for that
 _FLUSH = object()
@@ -83,6 +85,9 @@ class RegistrationStages:
         self.rest_pose_process = RestPoseProcess()
         self.frame_registrar = FrameRegistrar(self.params, self.rest_params, self.rest_pose_process.build,
                                               self.registration_process, self._publish_rest)
+        # when a cloud last arrived or a frame last finished (time.monotonic(), s): with
+        # _last_subject_s, how long the stream has been quiet (flush_if_quiet)
+        self._last_activity_s = time.monotonic()
         self._start_registration()
         self._done = 0                 # frames finished by either stage (tests, diagnostics)
         self._count_lock = threading.Lock()
@@ -96,6 +101,7 @@ class RegistrationStages:
     # -- what the node tells the stages ------------------------------------------------------
     def submit(self, item) -> None:
         """A frame (msg, camera info or None) for the camera stage (the newest one waits)."""
+        self._last_activity_s = time.monotonic()
         if self.camera.submit(item):
             self.warn_skipped()
 
@@ -257,12 +263,14 @@ class RegistrationStages:
         return points
 
     def flush_if_quiet(self) -> None:
-        """Frames held for the rest pose's choice and no subject frame for
-        CHOICE_QUIET_S: the stream ended or paused (a bag's end, a stopped camera), so the
-        rest pose is chosen from the frames held (on the registration stage's thread, after
-        the frames queued before). Called by a timer of the node."""
-        if (self.frame_registrar.held and time.monotonic() - self._last_subject_s > CHOICE_QUIET_S
-                and self.registration.idle):
+        """Frames held for the rest pose's choice, both stages idle, and no cloud received,
+        reaching the registration or finished for CHOICE_QUIET_S: the stream ended or paused
+        (a bag's end, a stopped camera), so the rest pose is chosen from the frames held (on
+        the registration stage's thread, after the frames queued before). Called by a timer
+        of the node."""
+        last = max(self._last_subject_s, self._last_activity_s)
+        if (self.frame_registrar.held and time.monotonic() - last > CHOICE_QUIET_S
+                and self.camera.idle and self.registration.idle):
             self.registration.submit(_FLUSH)
 
     def _register(self, frame) -> None:
@@ -361,5 +369,6 @@ class RegistrationStages:
         self.log.warn('failed', f'{what} failed: {type(error).__name__}: {error}')
 
     def _finished(self) -> None:
+        self._last_activity_s = time.monotonic()
         with self._count_lock:
             self._done += 1
