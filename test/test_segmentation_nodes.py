@@ -105,13 +105,13 @@ def test_a_frame_slow_to_segment_is_not_taken_for_a_pause(ros, walk_in):
     node = registration_node(ros)
     finder, calls = node.stages.subject_finder, []
 
-    def slow_tenth_frame(raw, height, width):
+    def slow_eleventh_frame(raw, height, width):
         calls.append(len(calls))
         if len(calls) == 11:     # the subject in view, frames held for the choice
             time.sleep(2.0 * CHOICE_QUIET_S)
         return finder(raw, height, width)
 
-    node.stages.subject_finder = slow_tenth_frame
+    node.stages.subject_finder = slow_eleventh_frame
     registered = ros.listen('registered_points', PointCloud2, STREAM_QOS)
     filtered = ros.listen('filtered_points', PointCloud2, STREAM_QOS)
     pub = ros.publisher('points', PointCloud2, QoSProfile(depth=10))
