@@ -65,6 +65,19 @@ def check_against_offline(ros, sequence, filtered, registered, clouds):
     assert np.percentile(distance, 99) < 0.05 and len(subject) > 1000
 
 
+def publish_one_at_a_time(ros, node, filtered, sequence):
+    """The sequence's clouds on `points`, each once the node has handled the one before;
+    returns the publisher."""
+    pub = ros.publisher('points', PointCloud2, QoSProfile(depth=10))
+    ros.wait_matched(pub)
+    for i, (points, stamp) in enumerate(zip(sequence.clouds, sequence.stamps_ns)):
+        pub.publish(cloud(points, stamp))
+        # one at a time: the node publishes filtered_points before it registers, and a
+        # cloud right behind would replace a frame still waiting for the registration
+        ros.wait(lambda: len(filtered) == i + 1 and node.stages.processed == i + 1, what=f'frame {i} handled')
+    return pub
+
+
 def test_node_in_a_room_waits_for_the_subject_and_registers_only_it(ros, walk_in, monkeypatch):
     from skel_extract_ros.nodes import registration_process as module
     # the rest pose process ends at the first frame with nobody in view, starts again when
@@ -75,13 +88,7 @@ def test_node_in_a_room_waits_for_the_subject_and_registers_only_it(ros, walk_in
     registered = ros.listen('registered_points', PointCloud2, STREAM_QOS)
     filtered = ros.listen('filtered_points', PointCloud2, STREAM_QOS)
     rests = ros.listen('rest_points', PointCloud2, LATCHED_QOS)
-    pub = ros.publisher('points', PointCloud2, QoSProfile(depth=10))
-    ros.wait_matched(pub)
-    for i, (points, stamp) in enumerate(zip(walk_in.clouds, walk_in.stamps_ns)):
-        pub.publish(cloud(points, stamp))
-        # one at a time: the node publishes filtered_points before it registers, and a
-        # cloud right behind would replace a frame still waiting for the registration
-        ros.wait(lambda: len(filtered) == i + 1 and node.stages.processed == i + 1, what=f'frame {i} handled')
+    pub = publish_one_at_a_time(ros, node, filtered, walk_in)
     ros.wait(lambda: len(rests) == 1, what='rest pose')
     # nobody in view at first: said (throttled), nothing registered, no rest pose from the room
     assert any('nobody in view' in line for line in node.log.history)
@@ -114,11 +121,7 @@ def test_a_frame_slow_to_segment_is_not_taken_for_a_pause(ros, walk_in):
     node.stages.subject_finder = slow_eleventh_frame
     registered = ros.listen('registered_points', PointCloud2, STREAM_QOS)
     filtered = ros.listen('filtered_points', PointCloud2, STREAM_QOS)
-    pub = ros.publisher('points', PointCloud2, QoSProfile(depth=10))
-    ros.wait_matched(pub)
-    for i, (points, stamp) in enumerate(zip(walk_in.clouds, walk_in.stamps_ns)):
-        pub.publish(cloud(points, stamp))
-        ros.wait(lambda: len(filtered) == i + 1 and node.stages.processed == i + 1, what=f'frame {i} handled')
+    publish_one_at_a_time(ros, node, filtered, walk_in)
     assert len(calls) == len(walk_in.clouds)
     check_against_offline(ros, walk_in, filtered, registered, walk_in.clouds)
 
