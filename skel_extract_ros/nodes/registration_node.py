@@ -44,7 +44,7 @@ from ..codecs.pointcloud import CloudDecodeError, decode_xyz
 from .common import (LATCHED_QOS, SENSOR_QOS, STREAM_QOS, ThrottledLog, WorkingNode, declare_params, decode_or_warn,
                      run_node)
 from .diagnostics import OK, WARN, NodeDiagnostics
-from .registration_stages import CHOICE_QUIET_S, RegistrationStages
+from .registration_stages import QUIET_CHECK_S, RegistrationStages
 
 SECTION = 'registration_node'
 
@@ -87,7 +87,7 @@ class RegistrationNode(WorkingNode):
         self.create_subscription(PointCloud2, 'skeleton/posed_points', self._on_posed, STREAM_QOS)
         self._reported_skips = 0
         self.diagnostics = NodeDiagnostics(self, self._diagnostics)
-        self.create_timer(CHOICE_QUIET_S / 2, self.stages.flush_if_quiet)
+        self.create_timer(QUIET_CHECK_S, self.stages.flush_if_quiet)
         # best effort matches every driver; reliable (for bag replay) never loses a
         # fragmented megabyte cloud to a full socket buffer, but needs a reliable publisher
         qos = SENSOR_QOS if own.input_reliability == 'best_effort' else STREAM_QOS

@@ -39,6 +39,8 @@ from .worker import Worker
 # never hits it; counted from the last frame finished too, so a slow segmentation is not
 # taken for a pause.
 CHOICE_QUIET_S = 0.7
+# how often the node's timer calls flush_if_quiet
+QUIET_CHECK_S = CHOICE_QUIET_S / 2
 # the registration stage's item for that
 _FLUSH = object()
 
@@ -85,9 +87,9 @@ class RegistrationStages:
         self.rest_pose_process = RestPoseProcess()
         self.frame_registrar = FrameRegistrar(self.params, self.rest_params, self.rest_pose_process.build,
                                               self.registration_process, self._publish_rest)
-        # when a cloud last arrived or a frame last finished (time.monotonic(), s): with
-        # _last_subject_s, how long the stream has been quiet (flush_if_quiet)
-        self._last_activity_s = time.monotonic()
+        # when a cloud last arrived or a frame last finished, and when flush_if_quiet last
+        # ran (time.monotonic(), s)
+        self._last_activity_s = self._last_quiet_check_s = time.monotonic()
         self._start_registration()
         self._done = 0                 # frames finished by either stage (tests, diagnostics)
         self._count_lock = threading.Lock()
@@ -239,7 +241,6 @@ class RegistrationStages:
     # -- registration stage ------------------------------------------------------------------
     def _start_registration(self) -> None:
         self.frame_registrar.reset()
-        self._last_subject_s = time.monotonic()
         self._rest_stamp = self._registered_stamp = None
         self.rest_pose_process.while_waiting(somebody=True)   # warm: a subject may come at once
 
@@ -263,13 +264,17 @@ class RegistrationStages:
         return points
 
     def flush_if_quiet(self) -> None:
-        """Frames held for the rest pose's choice, both stages idle, and no cloud received,
-        reaching the registration or finished for CHOICE_QUIET_S: the stream ended or paused
-        (a bag's end, a stopped camera), so the rest pose is chosen from the frames held (on
-        the registration stage's thread, after the frames queued before). Called by a timer
-        of the node."""
-        last = max(self._last_subject_s, self._last_activity_s)
-        if (self.frame_registrar.held and time.monotonic() - last > CHOICE_QUIET_S
+        """Frames held for the rest pose's choice, both stages idle, and no cloud received
+        or finished for CHOICE_QUIET_S: the stream ended or paused (a bag's end, a stopped
+        camera), so the rest pose is chosen from the frames held (on the registration
+        stage's thread, after the frames queued before). Called by a timer of the node every
+        QUIET_CHECK_S."""
+        now = time.monotonic()
+        # a call long after the last one ran after the executor was held up elsewhere:
+        # clouds may be waiting in its queue, not yet received, so the quiet is not evidence
+        late = now - self._last_quiet_check_s > 2.0 * QUIET_CHECK_S
+        self._last_quiet_check_s = now
+        if (not late and self.frame_registrar.held and now - self._last_activity_s > CHOICE_QUIET_S
                 and self.camera.idle and self.registration.idle):
             self.registration.submit(_FLUSH)
 
@@ -284,7 +289,6 @@ class RegistrationStages:
         if frame is _FLUSH:
             self._publish_steps(self._surviving_the_child(self.frame_registrar.flush))
             return
-        self._last_subject_s = time.monotonic()
         if frame.epoch != self._registration_epoch:
             self._registration_epoch = frame.epoch
             self._start_registration()
