@@ -4,7 +4,7 @@ not moving at all.
 
     python bench/bench_registration.py [--frames 90] [--sequences human,hand,fish,samba,swing]
                                        [--real] [--scenes empty,room] [--only wave,cow]
-                                       [--methods ours,paper,rustcpd,static]
+                                       [--methods ours,paper,tracker,tracker_start,rustcpd,static]
 
 Methods: `ours` (the defaults: robust smoothness, recapture), `ours_visibility` (and the
 visibility test), `paper` (the registration before the real-motion issue: Eq. 4 as written,
@@ -14,7 +14,11 @@ first `window_size` frames of the default growth schedule, or the first half of 
 clip; the skeleton learned on them as the nodes learn it (Steps 2 and 3); then every later
 frame fitted by that skeleton alone, the ArticulatedTracker chained from frame to frame and
 seeded once from the window's last registered frame, its LBS pose of every rest point
-scored; its ms/frame are the tracked frames'), `rustcpd` / `pycpd` (CPD frame
+scored; its ms/frame are the tracked frames'), `tracker_start` (`ours`, the same window and
+skeleton as `tracker`, then every later frame's EM started from that skeleton's fit of the
+frame itself: the ArticulatedTracker seeded from the last registered frame, as the nodes'
+`live_start` starts the registration from the live fit; its ms/frame are those frames', fit
+and EM), `rustcpd` / `pycpd` (CPD frame
 to frame, Y_t = CPD(V_t, Y_{t-1})), `static` (the rest pose, never moved). Every method sees the same
 preprocessed subject points and starts from the same rest set. Each runs in its own
 process so its peak memory (max RSS) is its own. Needs the `bench` extra:
@@ -60,7 +64,8 @@ from skel_extract_ros.sim.sources import simulate_swing  # noqa: E402
 
 DATA = Path(os.environ.get('SKEL_SHARED_DATA', REPO.parent / 'shared' / 'data'))
 SAMBA = Path(os.environ.get('SKEL_SAMBA', DATA / 'samba_mesh_sequence.npz'))
-METHODS = ('ours', 'ours_visibility', 'paper', 'paper_per_node', 'tracker', 'rustcpd', 'pycpd', 'static')
+METHODS = ('ours', 'ours_visibility', 'paper', 'paper_per_node', 'tracker', 'tracker_start', 'rustcpd', 'pycpd',
+           'static')
 METHOD_PARAMS = {'ours': {}, 'ours_visibility': {'visibility': True},
                  'paper': {'smoothness': 'paper', 'recapture': False},
                  'paper_per_node': {'smoothness': 'paper', 'recapture': False, 'm_step': 'per_node'}}
@@ -154,8 +159,8 @@ def worker(name: str, method: str, cache: Path) -> None:
             started = time.perf_counter()
             registered.append(registration.register_frame(frame).points)
             times.append(time.perf_counter() - started)
-    elif method == 'tracker':
-        registered, times = track_with_skeleton(rest, frames)
+    elif method in ('tracker', 'tracker_start'):
+        registered, times = track_with_skeleton(rest, frames, method == 'tracker_start')
     elif method == 'static':
         registered = [rest] * len(frames)
         times = [0.0] * len(frames)
@@ -194,10 +199,11 @@ def tracker_window(n_frames: int) -> int:
     return min(GrowthSchedule().window_size, n_frames // 2)
 
 
-def track_with_skeleton(rest: np.ndarray, frames: list) -> tuple:
-    """The `tracker` method: (registered points per frame, seconds per tracked frame): the
-    times are the tracker's own (after the window), without the learning (Steps 2 and 3,
-    once) or the window's registration."""
+def track_with_skeleton(rest: np.ndarray, frames: list, start_registration: bool = False) -> tuple:
+    """The `tracker` method, or with start_registration the `tracker_start` method: (registered
+    points per frame, seconds per frame after the window): the times are the tracker's own
+    (and the registration's it starts), without the learning (Steps 2 and 3, once) or the
+    window's registration."""
     registration = NonRigidRegistration(rest, RegistrationParams())
     window = tracker_window(len(frames))
     registered = [registration.register_frame(frame).points for frame in frames[:window]]
@@ -210,9 +216,17 @@ def track_with_skeleton(rest: np.ndarray, frames: list) -> tuple:
     tracker.seed(*pose.fit(registered[-1]))
     for frame in frames[window:]:
         started = time.perf_counter()
-        rotations, translations = tracker.fit(frame)
+        if start_registration:
+            # as the registration node with live_start: the live fit, seeded from the newest
+            # registered frame, gives the pose Alg. 1 starts from (none when it diverged)
+            tracker.seed(*pose.fit(registered[-1]))
+            rotations, translations = tracker.fit(frame)
+            start = None if tracker.diverged else pose.deform(rotations, translations)
+            registered.append(registration.register_frame(frame, start).points)
+        else:
+            rotations, translations = tracker.fit(frame)
+            registered.append(pose.deform(rotations, translations))
         times.append(time.perf_counter() - started)
-        registered.append(pose.deform(rotations, translations))
     return registered, times
 
 
