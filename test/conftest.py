@@ -76,31 +76,26 @@ def check_sample_scores(report: dict) -> None:
     """The sample bag's scores (`skel-extract evaluate --json`), by `run` and by `replay`
     alike: bounds close to what is measured (repeatable run to run), so a regression shows.
 
-    Measured: 14 joints, 11 of 21 matched (recall 0.52, precision 0.79), 5 of the 9 joints
-    that bend >= 25 deg (4 within 10 cm, none within 5), mean 0.077 m, normalized 0.016 m,
-    motion skill 0.60, over 59 frames (the subject is found at frame 1), every one with
-    joints; of the 6 joints that travel >= 10 cm, 2 tracked better than held still, tracking
-    skill 0.06; registration mean 0.029 m, coverage 0.44. Before the
-    registration kept its E-step's candidate lists (issue 14): 15 joints, 12 matched, 7 of
-    9, mean 0.084 m, skill 0.53; the same change left the 24 real-motion rows as they were
-    (articulated recall 0.494 -> 0.497, bench/README.md): Step 2 reacting to millimetres of
-    registration on this one sequence, not a trend. Before the structure issue (a
-    floor of 2 % of the subject size on a joint's motion): 7 joints, 6 matched, 5 of 9,
-    normalized 0.025 m; before the registration issue (hands lost, 0.8 m): 4 joints, 3
-    matched, 2 of 9, mean 0.104 m, registration 0.111 m. The next issues improve these;
-    their bounds then move with them.
+    Measured: 10 joints, 9 of 21 matched (recall 0.43, precision 0.90), 7 of the 9 joints
+    that bend >= 25 deg (6 within 10 cm, 3 within 5), mean 0.060 m, normalized 0.018 m,
+    motion skill 0.79, over 59 frames (the subject is found at frame 1), every one with
+    joints; of the 6 joints that travel >= 10 cm, 4 tracked better than held still, tracking
+    skill 0.61; registration mean 0.014 m, coverage 0.45. Before Step 2's threshold 4 and
+    least turn of 15 degrees: 13 joints, 12 matched, 8 of 9, mean 0.061 m, skill 0.61 (the
+    24 real-motion rows: bench/README.md); earlier figures in this docstring's git history.
+    The bounds leave one joint of margin. The next issues improve these; their bounds then move with them.
     """
     joints, registration = report['joints'], report['registration']
     assert joints['n_frames'] == 59 and joints['nonfinite_fraction'] == 0.0, joints
-    assert joints['n_matched'] >= 11 and joints['precision'] >= 0.75, joints
-    assert joints['n_articulated'] == 9 and joints['articulated_recall'] >= 5 / 9, joints
-    assert joints['mean_error_m'] < 0.095 and joints['normalized_error_m'] < 0.02, joints
-    assert joints['motion_skill'] > 0.45, joints
+    assert joints['n_matched'] >= 8 and joints['precision'] >= 0.8, joints
+    assert joints['n_articulated'] == 9 and joints['articulated_recall'] >= 6 / 9, joints
+    assert joints['mean_error_m'] < 0.075 and joints['normalized_error_m'] < 0.02, joints
+    assert joints['motion_skill'] > 0.6, joints
     assert joints['frame_coverage'] == 1.0 and joints['n_repeated_frames'] == 0, joints
-    assert joints['n_moving'] == 6 and joints['moving_recall'] >= 2 / 6 and joints['tracking_skill'] > 0.0, joints
-    assert joints['articulated_recall_10cm'] >= 4 / 9, joints
+    assert joints['n_moving'] == 6 and joints['moving_recall'] >= 3 / 6 and joints['tracking_skill'] > 0.4, joints
+    assert joints['articulated_recall_10cm'] >= 5 / 9, joints
     assert registration['n_frames'] == 59 and registration['nonfinite_fraction'] == 0.0, registration
-    assert registration['mean_error_m'] < 0.035 and registration['coverage'] > 0.4, registration
+    assert registration['mean_error_m'] < 0.025 and registration['coverage'] > 0.4, registration
 
 
 @pytest.fixture(scope='session')

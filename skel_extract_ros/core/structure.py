@@ -20,7 +20,7 @@
      change;
    - paper rule 3: two adjacent joints closer than `joint_merge_fraction` of the subject
      size are merged (the short bone between them goes to its parent);
-   - optionally (`min_turn_deg`), once no other rule removes a bone: the joint whose two
+   - last (`min_turn_deg`), once no other rule removes a bone: the joint whose two
      bones turn least against each other over the window (the largest angle between two
      frames' relative rotations, core.rigid.turn_spans) is merged while that turn is under
      the threshold: a cut through a part that sways a few degrees (a torso) is a joint by
@@ -51,6 +51,13 @@ relative rotation is measured through the points rather than as the angle betwee
 rotations because the turn of a thin part about its own axis barely moves its points and
 is barely determined by them (the fitted angle can show a 180 degree "bend" between the
 halves of a rigid forearm).
+
+The two thresholds work together. The noise is measured on the current bones, so merging a
+part that sways (a torso over the legs) raises it and lowers every other joint's evidence:
+near the threshold one merge pulls a bending wrist under it. The evidence threshold
+therefore sits low enough to keep such joints, and the least turn (`min_turn_deg`, an angle:
+the same for a hand, a body and a cow) then removes the cuts through parts that do not bend,
+which a low threshold lets through.
 
 Joint locations and anchors: core/joint_centres.py.
 """
@@ -92,7 +99,7 @@ class StructureParams:
                                                'dimensionless', 0.1, 100.0)
     min_bone_fraction: float = parameter(0.01, 'bones holding less than this fraction of the points are dropped',
                                          0.0, 1.0)
-    motion_noise_factor: float = parameter(5.0, 'evidence a joint needs: its relative rotation over the window '
+    motion_noise_factor: float = parameter(4.0, 'evidence a joint needs: its relative rotation over the window '
                                            'over the rotation the registration noise alone makes (swap '
                                            'displacement / rigid-fit noise); below it the bone is merged into its '
                                            'parent, dimensionless', 0.0, INF)
@@ -104,7 +111,7 @@ class StructureParams:
                                     "current bones' rigid-fit residual, again at each refinement pass) or "
                                     "clusters (the K-means clusters' after the relabelling rounds, once: "
                                     'small parts, nearly rigid)', choices=('bones', 'clusters'))
-    min_turn_deg: float = parameter(0.0, 'once the other rules keep every bone, a joint whose two bones turn '
+    min_turn_deg: float = parameter(15.0, 'once the other rules keep every bone, a joint whose two bones turn '
                                     'against each other by less than this over the window is merged, the least '
                                     'turn first (0 = off), degrees', 0.0, 180.0)
     eta: float = parameter(1.0, 'weight of the joint data term in the Step 2 joint solve (Table 1), '
