@@ -30,9 +30,9 @@ def test_bench_skeleton_scores_steps_2_and_3():
 
 
 def test_bench_skeleton_runs_with_a_parameter_file(tmp_path):
-    # every cut is kept when a joint needs no evidence: the file's value reaches Step 2
+    # every cut is kept when a joint needs no evidence and no turn: the file's values reach Step 2
     params = tmp_path / 'params.yaml'
-    params.write_text('accumulator_node:\n  ros__parameters:\n    motion_noise_factor: 0.0\n')
+    params.write_text('accumulator_node:\n  ros__parameters:\n    motion_noise_factor: 0.0\n    min_turn_deg: 0.0\n')
     args = ('--frames', '24', '--subjects', 'arm', '--no-dem-bones', '--no-surface')
     default = _table_rows('bench_skeleton.py', *args)
     every_cut = _table_rows('bench_skeleton.py', *args, '--params', str(params))
@@ -40,7 +40,7 @@ def test_bench_skeleton_runs_with_a_parameter_file(tmp_path):
 
 
 def test_bench_registration_runs_the_registration_and_the_skeleton_tracker():
-    rows = _table_rows('bench_registration.py', '--sequences', 'arm', '--frames', '24',
+    rows = _table_rows('bench_registration.py', '--sequences', 'arm', '--frames', '36',
                        '--methods', 'ours,tracker,tracker_start,static')
     by_method = {row[2]: row for row in rows}
     assert set(by_method) == {'ours', 'tracker', 'tracker_start', 'static'}, rows
