@@ -220,12 +220,10 @@ def track_with_skeleton(rest: np.ndarray, frames: list, start_registration: bool
             # as the registration node with live_start: the live fit, seeded from the newest
             # registered frame, gives the pose Alg. 1 starts from (none when it diverged)
             tracker.seed(*pose.fit(registered[-1]))
-            rotations, translations = tracker.fit(frame)
-            start = None if tracker.diverged else pose.deform(rotations, translations)
-            registered.append(registration.register_frame(frame, start).points)
-        else:
-            rotations, translations = tracker.fit(frame)
-            registered.append(pose.deform(rotations, translations))
+        posed = pose.deform(*tracker.fit(frame))
+        if start_registration:
+            posed = registration.register_frame(frame, None if tracker.diverged else posed).points
+        registered.append(posed)
         times.append(time.perf_counter() - started)
     return registered, times
 

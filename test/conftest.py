@@ -83,7 +83,8 @@ def check_sample_scores(report: dict) -> None:
     skill 0.61; registration mean 0.014 m, coverage 0.45. Before Step 2's threshold 4 and
     least turn of 15 degrees: 13 joints, 12 matched, 8 of 9, mean 0.061 m, skill 0.61 (the
     24 real-motion rows: bench/README.md); earlier figures in this docstring's git history.
-    The bounds leave one joint of margin. The next issues improve these; their bounds then move with them.
+    The bounds leave one joint of margin. The next issues improve these; their bounds then
+    move with them.
     """
     joints, registration = report['joints'], report['registration']
     assert joints['n_frames'] == 59 and joints['nonfinite_fraction'] == 0.0, joints
