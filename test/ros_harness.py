@@ -6,7 +6,7 @@ import time
 
 import rclpy
 from rcl_interfaces.msg import Log
-from rclpy.executors import MultiThreadedExecutor
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import QoSProfile
 from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Header
@@ -19,34 +19,45 @@ DT = 33_333_333
 
 
 class Harness:
+    """Each node spun by a SingleThreadedExecutor on a thread of its own, as `rclpy.spin`
+    spins each installed node in its process: callbacks of one node never overlap, those of
+    different nodes do. A callback runs inside spin_once, so once the threads are joined no
+    callback is in flight (a pool executor's could still run while close() destroys its
+    node: an rclpy InvalidHandle that nobody retrieves, printed at interpreter exit)."""
+
     def __init__(self):
         os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
         # private domain per test process so parallel runs and other graphs never mix
         self.context = rclpy.Context()
         rclpy.init(context=self.context, domain_id=100 + os.getpid() % 100)
-        self.executor = MultiThreadedExecutor(num_threads=4, context=self.context)
-        self.probe = rclpy.create_node('probe', context=self.context)
-        self.executor.add_node(self.probe)
+        self._stop = threading.Event()
+        self._spinners = []
         self.nodes = []
         self.received = {}
         self._lock = threading.Lock()
+        self.probe = rclpy.create_node('probe', context=self.context)
         self.logs = self.listen('/rosout', Log, QoSProfile(depth=1000))
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._spin, daemon=True)
-        self._thread.start()
+        self._spin_in_thread(self.probe)
 
-    def _spin(self):
+    def _spin_in_thread(self, node):
+        executor = SingleThreadedExecutor(context=self.context)
+        executor.add_node(node)
+        thread = threading.Thread(target=self._spin, args=(executor,), name=f'{node.get_name()}-spin', daemon=True)
+        self._spinners.append((executor, thread))
+        thread.start()
+
+    def _spin(self, executor):
         # spin_once in a loop, not executor.spin(): close() ends this loop before shutting the
         # executor down. Jazzy's Executor.shutdown() destroys its guard condition without
         # waiting for the callbacks in flight, and one of them then triggers it (rclpy
         # InvalidHandle in the spin thread; seen under load)
         while not self._stop.is_set() and self.context.ok():
-            self.executor.spin_once(timeout_sec=0.05)
+            executor.spin_once(timeout_sec=0.05)
 
     def add(self, node_class, **kwargs):
         node = node_class(context=self.context, **kwargs)
         self.nodes.append(node)
-        self.executor.add_node(node)
+        self._spin_in_thread(node)
         return node
 
     def listen(self, topic, msg_type, qos):
@@ -65,8 +76,8 @@ class Harness:
             time.sleep(0.01)
 
     def spinning(self) -> bool:
-        """Whether the executor still runs: a callback that raises stops it (and every node)."""
-        return self._thread.is_alive()
+        """Whether every node is still spun: a callback that raises ends its node's thread."""
+        return all(thread.is_alive() for _executor, thread in self._spinners)
 
     def wait_matched(self, publisher, timeout=30.0):
         self.wait(lambda: publisher.get_subscription_count() >= 1, timeout, 'a subscription to match')
@@ -87,8 +98,9 @@ class Harness:
 
     def close(self):
         self._stop.set()
-        self._thread.join(timeout=10.0)
-        self.executor.shutdown()
+        for executor, thread in self._spinners:
+            thread.join(timeout=10.0)
+            executor.shutdown()
         for node in self.nodes:
             node.destroy_node()
         self.probe.destroy_node()

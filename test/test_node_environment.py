@@ -1,7 +1,7 @@
 """The environment of the processes: a node process runs its thread pools on one thread (the
-threads a fresh interpreter has after numpy's import and a pykdtree query), and a replay
-publishes with the packaged Fast DDS profile (a shared-memory segment for large clouds),
-unless the environment says otherwise."""
+threads a fresh interpreter has after numpy's import and a pykdtree query) and keeps two
+malloc arenas, and a replay publishes with the packaged Fast DDS profile (a shared-memory
+segment for large clouds), unless the environment says otherwise."""
 import os
 import subprocess
 import sys
@@ -47,6 +47,47 @@ def test_node_processes_start_no_worker_threads():
 
 def test_explicit_thread_settings_are_kept():
     assert _probe('nodes', OMP_NUM_THREADS='2', OPENBLAS_NUM_THREADS='3')[2:4] == ['2', '3']
+
+
+ARENAS_PROBE = '''
+import ctypes, ctypes.util, os, sys, tempfile, threading
+if sys.argv[1] == 'nodes':
+    import skel_extract_ros.nodes  # noqa: F401
+import numpy as np
+barrier = threading.Barrier(8)
+def allocate():
+    # a 64 KiB buffer is under glibc's mmap threshold: it comes from the thread's arena
+    held = [np.ones(8192) for _ in range(4)]
+    barrier.wait()
+threads = [threading.Thread(target=allocate) for _ in range(8)]
+[t.start() for t in threads]
+[t.join() for t in threads]
+libc = ctypes.CDLL(ctypes.util.find_library('c'))
+libc.fopen.restype = ctypes.c_void_p
+with tempfile.NamedTemporaryFile('r', suffix='.xml') as report:
+    stream = libc.fopen(report.name.encode(), b'w')
+    libc.malloc_info(0, ctypes.c_void_p(stream))
+    libc.fclose(ctypes.c_void_p(stream))
+    print(report.read().count('<heap nr='), os.environ.get('MALLOC_ARENA_MAX'))
+'''
+
+
+def _arenas(mode: str, **env) -> list:
+    environment = {k: v for k, v in os.environ.items() if k != 'MALLOC_ARENA_MAX'}
+    environment.update(env)
+    return subprocess.run([sys.executable, '-c', ARENAS_PROBE, mode], capture_output=True, text=True,
+                          check=True, env=environment).stdout.split()
+
+
+@pytest.mark.skipif(not sys.platform.startswith('linux'), reason="counts glibc's malloc arenas")
+def test_node_processes_keep_two_malloc_arenas_and_pass_the_limit_to_their_children():
+    heaps, limit = _arenas('nodes')
+    assert int(heaps) <= 2 and limit == '2'
+    # eight threads allocating at once get arenas of their own without the limit
+    heaps, limit = _arenas('plain')
+    assert int(heaps) > 2 and limit == 'None'
+    # the user's own setting is kept
+    assert _arenas('nodes', MALLOC_ARENA_MAX='4')[1] == '4'
 
 
 def test_replay_publishes_with_the_large_shared_memory_profile():

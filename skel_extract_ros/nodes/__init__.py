@@ -7,8 +7,27 @@ OPENBLAS_NUM_THREADS say otherwise. The nodes share the machine's cores between 
 products) keeps its threads spinning between calls and takes the cores from the others
 (bench/HISTORY.md, "One thread per node process"). Set here, before any node module
 imports numpy or pykdtree: both libraries read these once, when they are loaded.
+
+For the same processes, glibc's malloc keeps at most two arenas, unless MALLOC_ARENA_MAX
+says otherwise. glibc gives each new thread an arena of its own (up to 8 per core), and an
+arena keeps the pages its thread freed. A node's threads (DDS, the executor, its workers)
+mostly take turns under the GIL: two arenas hold less memory, at no speed the nodes'
+benches can tell (bench/HISTORY.md, "Two malloc arenas a node process"). Set here, before
+rclpy starts the DDS threads, and in the environment for the child processes a node starts
+later (glibc reads it when a process starts).
 """
+import ctypes
+import ctypes.util
 import os
 
 for _variable in ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS'):
     os.environ.setdefault(_variable, '1')
+
+# mallopt's parameter number for the arena limit (glibc malloc.h: M_ARENA_MAX)
+_M_ARENA_MAX = -8
+if 'MALLOC_ARENA_MAX' not in os.environ:
+    os.environ['MALLOC_ARENA_MAX'] = '2'
+    try:
+        ctypes.CDLL(ctypes.util.find_library('c') or 'libc.so.6').mallopt(_M_ARENA_MAX, 2)
+    except (OSError, AttributeError):
+        pass  # not glibc (musl, macOS): their allocators have no such arenas
