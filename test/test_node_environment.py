@@ -50,7 +50,7 @@ def test_explicit_thread_settings_are_kept():
 
 
 ARENAS_PROBE = '''
-import ctypes, ctypes.util, os, sys, tempfile, threading
+import ctypes, ctypes.util, os, subprocess, sys, tempfile, threading
 if sys.argv[1] == 'nodes':
     import skel_extract_ros.nodes  # noqa: F401
 import numpy as np
@@ -68,7 +68,11 @@ with tempfile.NamedTemporaryFile('r', suffix='.xml') as report:
     stream = libc.fopen(report.name.encode(), b'w')
     libc.malloc_info(0, ctypes.c_void_p(stream))
     libc.fclose(ctypes.c_void_p(stream))
-    print(report.read().count('<heap nr='), os.environ.get('MALLOC_ARENA_MAX'))
+    heaps = report.read().count('<heap nr=')
+# what a child process started now (the registration's) gets
+child = subprocess.run([sys.executable, '-c', 'import os; print(os.environ.get("MALLOC_ARENA_MAX"))'],
+                       capture_output=True, text=True, check=True).stdout.strip()
+print(heaps, child)
 '''
 
 
