@@ -25,13 +25,15 @@ print(start, len(os.listdir('/proc/self/task')), os.environ.get('OMP_NUM_THREADS
       os.environ.get('OPENBLAS_NUM_THREADS'), os.environ.get('FASTRTPS_DEFAULT_PROFILES_FILE'))
 '''
 SETTINGS = ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'FASTRTPS_DEFAULT_PROFILES_FILE',
-            'FASTDDS_DEFAULT_PROFILES_FILE')
+            'FASTDDS_DEFAULT_PROFILES_FILE', 'MALLOC_ARENA_MAX')
 
 
-def _probe(mode: str, **env) -> list:
+def _probe(mode: str, script: str = PROBE, **env) -> list:
+    """The words `script` prints in a fresh interpreter, run with `mode` as its argument, in
+    this environment without SETTINGS, plus `env`."""
     environment = {k: v for k, v in os.environ.items() if k not in SETTINGS}
     environment.update(env)
-    return subprocess.run([sys.executable, '-c', PROBE, mode], capture_output=True, text=True, check=True,
+    return subprocess.run([sys.executable, '-c', script, mode], capture_output=True, text=True, check=True,
                           env=environment).stdout.split()
 
 
@@ -76,22 +78,15 @@ print(heaps, child)
 '''
 
 
-def _arenas(mode: str, **env) -> list:
-    environment = {k: v for k, v in os.environ.items() if k != 'MALLOC_ARENA_MAX'}
-    environment.update(env)
-    return subprocess.run([sys.executable, '-c', ARENAS_PROBE, mode], capture_output=True, text=True,
-                          check=True, env=environment).stdout.split()
-
-
 @pytest.mark.skipif(not sys.platform.startswith('linux'), reason="counts glibc's malloc arenas")
 def test_node_processes_keep_two_malloc_arenas_and_pass_the_limit_to_their_children():
-    heaps, limit = _arenas('nodes')
+    heaps, limit = _probe('nodes', ARENAS_PROBE)
     assert int(heaps) <= 2 and limit == '2'
     # eight threads allocating at once get arenas of their own without the limit
-    heaps, limit = _arenas('plain')
+    heaps, limit = _probe('plain', ARENAS_PROBE)
     assert int(heaps) > 2 and limit == 'None'
     # the user's own setting is kept
-    assert _arenas('nodes', MALLOC_ARENA_MAX='4')[1] == '4'
+    assert _probe('nodes', ARENAS_PROBE, MALLOC_ARENA_MAX='4')[1] == '4'
 
 
 def test_replay_publishes_with_the_large_shared_memory_profile():
