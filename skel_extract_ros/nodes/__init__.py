@@ -18,7 +18,19 @@ later (glibc reads it when a process starts).
 """
 import ctypes
 import ctypes.util
+import functools
 import os
+
+
+@functools.lru_cache(maxsize=1)
+def libc() -> ctypes.CDLL | None:
+    """The process's C library (for glibc's mallopt and malloc_trim), or None where it
+    cannot be loaded."""
+    try:
+        return ctypes.CDLL(ctypes.util.find_library('c') or 'libc.so.6')
+    except OSError:
+        return None
+
 
 for _variable in ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS'):
     os.environ.setdefault(_variable, '1')
@@ -27,7 +39,5 @@ for _variable in ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS'):
 _M_ARENA_MAX = -8
 if 'MALLOC_ARENA_MAX' not in os.environ:
     os.environ['MALLOC_ARENA_MAX'] = '2'
-    try:
-        ctypes.CDLL(ctypes.util.find_library('c') or 'libc.so.6').mallopt(_M_ARENA_MAX, 2)
-    except (OSError, AttributeError):
-        pass  # not glibc (musl, macOS): their allocators have no such arenas
+    # not glibc (musl, macOS): no mallopt, and their allocators have no such arenas
+    getattr(libc(), 'mallopt', lambda *_args: None)(_M_ARENA_MAX, 2)

@@ -180,12 +180,8 @@ def release_freed_memory() -> None:
     pose) back to the system. glibc keeps freed memory in its per-thread arenas, so a node
     keeps its peak for good; malloc_trim releases it. No-op where libc has no malloc_trim
     (musl, macOS)."""
-    import ctypes
-    import ctypes.util
-    try:
-        ctypes.CDLL(ctypes.util.find_library('c') or 'libc.so.6').malloc_trim(0)
-    except (OSError, AttributeError):
-        pass
+    from . import libc
+    getattr(libc(), 'malloc_trim', lambda _pad: None)(0)
 
 
 def run_node(node_factory, args=None) -> NoReturn:
