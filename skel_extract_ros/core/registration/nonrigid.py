@@ -81,10 +81,10 @@ class NonRigidRegistration(GraphTerms, GraphMStep):
     def _e_step(self, observed: np.ndarray, points: np.ndarray, sigma2: float,
                 view: 'ObservedView | None' = None, cache: CandidateCache | None = None) -> GMMStatistics:
         """Eq. (3), balanced by mass_cap (gmm module docstring), over the centroids the camera
-        can see (all without a view); without a view, over the candidates of `cache` (the
-        frame's CandidateCache)."""
+        can see (`visibility`; all without it); without it, over the candidates of `cache`
+        (the frame's CandidateCache)."""
         p = self.params
-        if view is None:
+        if view is None or not p.visibility:
             if cache is not None:
                 return cache.posteriors(points, sigma2, p.omega, p.truncation_sigmas, p.mass_cap)
             return gmm_posteriors(observed, points, sigma2, p.omega, p.e_step_neighbours, p.truncation_sigmas,
@@ -98,14 +98,35 @@ class NonRigidRegistration(GraphTerms, GraphMStep):
         P1[visible], Px[visible] = stats.P1, stats.Px
         return GMMStatistics(P1, Px, stats.Np, stats.nll, stats.weighted_sq)
 
+    def _with_silhouette(self, estep: GMMStatistics, points: np.ndarray, view: 'ObservedView',
+                         sigma2: float) -> GMMStatistics:
+        """The statistics the M-step fits with the silhouette term (`free_space`): each point
+        (M, 3) m that the observed silhouette does not cover, within the E-step's reach of it,
+        gets a pseudo-observation on the nearest observed ray at its own range, of weight
+        free_space x the median posterior mass of the points with data. The E-step pulls a
+        point only towards observations; this also pushes it out of where the camera saw
+        nothing. Eq. 7's sigma2, the energy, and the support that recapture and the carry of
+        unseen parts read keep the real data's statistics."""
+        outside, targets = view.silhouette_targets(points, self.params.truncation_sigmas * np.sqrt(sigma2))
+        with_data = estep.P1 > 1e-3
+        if not outside.any() or not with_data.any():
+            return estep
+        weight = self.params.free_space * float(np.median(estep.P1[with_data])) * outside
+        P1 = estep.P1 + weight
+        return GMMStatistics(P1, estep.Px + weight[:, None] * targets, float(P1.sum()), estep.nll,
+                             estep.weighted_sq)
+
     def _node_support(self, estep: GMMStatistics) -> np.ndarray:
         """(J,) posterior mass per carried point that each node's points received (0: no data)."""
         return (self._blend.T @ estep.P1) / self._node_mass
 
     def _run_em(self, observed: np.ndarray, view: 'ObservedView | None', rotations: np.ndarray,
                 translations: np.ndarray, iterations_done: int = 0) -> '_EMState':
-        """EM (Alg. 1) from the node transforms given, to convergence or max_iterations."""
+        """EM (Alg. 1) from the node transforms given, to convergence or max_iterations.
+        view: the frame's ObservedView, for `visibility` and `free_space` (None: neither)."""
         p = self.params
+        hiding = view is not None and p.visibility
+        silhouette = view is not None and p.free_space > 0
         rotated = self._rotated_offsets(rotations)
         contributions = self._contributions(rotations, translations, rotated)
         points = contributions.sum(axis=1)
@@ -114,7 +135,7 @@ class NonRigidRegistration(GraphTerms, GraphMStep):
         iterations = 0
         estep = None
         # the visible subset changes between iterations: its E-step queries every time
-        cache = CandidateCache(observed, self.point_spacing, p.e_step_neighbours) if view is None else None
+        cache = None if hiding else CandidateCache(observed, self.point_spacing, p.e_step_neighbours)
         for iterations in range(1, p.max_iterations + 1):
             estep = self._e_step(observed, points, sigma2, view, cache)
             # the objective and the IRLS weights below are both at these transforms
@@ -124,17 +145,18 @@ class NonRigidRegistration(GraphTerms, GraphMStep):
                 break
             if estep.Np <= 1e-9:
                 break
+            fitted = self._with_silhouette(estep, points, view, sigma2) if silhouette else estep
             if p.m_step == 'translations_rotations':
                 # IRLS: the robust edge weights are fixed at this iteration's transforms
                 stiffness = self.edge_stiffness(rotations, translations, sigma2,
-                                                None if view is None else self.last_visible_, residuals)
-                self._solve_translations(estep, sigma2, rotations, translations, rotated, stiffness)
+                                                self.last_visible_ if hiding else None, residuals)
+                self._solve_translations(fitted, sigma2, rotations, translations, rotated, stiffness)
                 contributions = self._contributions(rotations, translations, rotated)
-                self._update_rotations(estep, sigma2, contributions, rotations, translations, rotated, stiffness)
+                self._update_rotations(fitted, sigma2, contributions, rotations, translations, rotated, stiffness)
                 rotated = self._rotated_offsets(rotations)
                 contributions = self._contributions(rotations, translations, rotated)
             else:
-                self._update_nodes(estep, sigma2, contributions, rotations, translations)
+                self._update_nodes(fitted, sigma2, contributions, rotations, translations)
             points = contributions.sum(axis=1)
             # Eq. (7): sum_mi p_mi |v_i - y'_m|^2 / (3 N_p)
             sigma2 = max(estep.squared_residual(points) / (3.0 * estep.Np), p.min_sigma2)
@@ -253,7 +275,7 @@ class NonRigidRegistration(GraphTerms, GraphMStep):
         start = (self.rotations.copy(), self.translations.copy()) if start_points is None \
             else self.transforms_onto(start_points)
 
-        view = ObservedView(observed) if p.visibility else None
+        view = ObservedView(observed) if p.visibility or p.free_space > 0 else None
         state = self._em_from(observed, view, start)
         if self._coarse is not None:
             coarse_start = self._coarse_start(observed, start)

@@ -37,6 +37,10 @@ class RegistrationParams:
     visibility: bool = parameter(False, 'model points hidden behind the observed surface (farther than the '
                                  "E-step's reach) take no observations in that frame and follow the graph; "
                                  'false = every point may claim observations (the paper)')
+    free_space: float = parameter(0.0, 'weight of the silhouette term: a registered point outside the observed '
+                                  "silhouette, within the E-step's reach of it, is pulled onto the nearest observed "
+                                  'ray at its own range, weighted this x the median posterior mass of the points '
+                                  'with data; 0 = off (the paper), dimensionless', 0.0, INF)
     recapture: bool = parameter(True, 'after EM, move a part left without data rigidly onto the observations '
                                 'nothing explains and re-run EM (fast limbs)')
     initial_sigma2: float = parameter(6e-4, 'GMM variance at the start of every frame, m^2 (Sec. 7)', 1e-12, INF)

@@ -1,9 +1,15 @@
-"""Which model points the camera could have seen in a frame (self-occlusion, the back of a
-turned body): the E-step's view of the frame."""
+"""What the camera saw of a frame, ray by ray: which model points it could have seen
+(self-occlusion, the back of a turned body) and which lie where it saw nothing (outside the
+subject's silhouette)."""
 from __future__ import annotations
 
 import numpy as np
 from scipy.spatial import cKDTree
+
+# a point is outside the silhouette when no observed ray passes within this many ray
+# spacings of its own: the segmentation and the sensor's edge filtering take a pixel or two
+# off a limb's rim, which should not pull the model's rim inwards
+SILHOUETTE_SPACINGS = 3.0
 
 
 class ObservedView:
@@ -22,10 +28,10 @@ class ObservedView:
     def __init__(self, observed: np.ndarray):
         ranges = np.linalg.norm(observed, axis=1)
         self.ranges = ranges
-        directions = observed / np.maximum(ranges, 1e-9)[:, None]
-        self.tree = cKDTree(directions)
+        self.directions = observed / np.maximum(ranges, 1e-9)[:, None]
+        self.tree = cKDTree(self.directions)
         # the angular pixel footprint: how far apart neighbouring rays are
-        self.ray_spacing = float(np.median(self.tree.query(directions, k=2)[0][:, 1]))
+        self.ray_spacing = float(np.median(self.tree.query(self.directions, k=2)[0][:, 1]))
 
     def visible(self, points: np.ndarray, margin: float) -> np.ndarray:
         """(M,) bool: no observation within 1.5 ray spacings of the point's ray is more
@@ -36,3 +42,16 @@ class ObservedView:
         found = nearest < len(self.ranges)
         in_front = np.where(found, self.ranges[np.where(found, nearest, 0)], np.inf)
         return (in_front.min(axis=1) >= ranges - margin)
+
+    def silhouette_targets(self, points: np.ndarray, reach: float) -> tuple:
+        """Where the silhouette term (RegistrationParams.free_space) pulls points (M, 3) m:
+        (outside (M,) bool, targets (M, 3) m). A point is outside when no observed ray passes
+        within SILHOUETTE_SPACINGS ray spacings of its ray while one passes within `reach`
+        (m) of the point itself, across its ray (farther ones are a lost part's, which the
+        nearest ray would hand to whatever limb is next to it); its target lies on the
+        nearest observed ray, at the point's own range."""
+        ranges = np.linalg.norm(points, axis=1)
+        # chord between unit vectors: the angle (rad) for the small angles that matter here
+        angle, nearest = self.tree.query(points / np.maximum(ranges, 1e-9)[:, None])
+        outside = (angle > SILHOUETTE_SPACINGS * self.ray_spacing) & (angle * ranges <= reach)
+        return outside, self.directions[nearest] * ranges[:, None]
