@@ -43,8 +43,8 @@ The sigma2 floor (min_sigma2) can likewise stop the sigma2 step from being a ful
 The module per part: `params` (RegistrationParams, FrameResult, the frame statuses),
 `graph_terms` (the deformation graph's precomputed structures and E_smooth, robust or
 quadratic), `m_step` (the exact blocks of the M-step, Eq. 4-6), `visibility` (which model
-points the camera could have seen), `nonrigid` (NonRigidRegistration: the EM loop of
-Alg. 1 over them, recapture).
+points the camera could have seen, and which lie outside the silhouette), `nonrigid`
+(NonRigidRegistration: the EM loop of Alg. 1 over them, recapture).
 """
 from .graph_terms import GraphTerms
 from .m_step import GraphMStep

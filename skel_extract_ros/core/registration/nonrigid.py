@@ -108,6 +108,7 @@ class NonRigidRegistration(GraphTerms, GraphMStep):
         nothing. Eq. 7's sigma2, the energy, and the support that recapture and the carry of
         unseen parts read keep the real data's statistics."""
         outside, targets = view.silhouette_targets(points, self.params.truncation_sigmas * np.sqrt(sigma2))
+        # the points with data: a thousandth of an observation's mass or more
         with_data = estep.P1 > 1e-3
         if not outside.any() or not with_data.any():
             return estep

@@ -14,7 +14,8 @@ SILHOUETTE_SPACINGS = 3.0
 
 class ObservedView:
     """What the camera saw of one frame, as directions and ranges from the camera (the
-    origin of the cloud frame), to tell which model points it could have seen.
+    origin of the cloud frame), to tell which model points it could have seen and which lie
+    outside the subject's silhouette.
 
     A model point is hidden when an observation lies on (nearly) the same ray and is
     closer to the camera by more than `margin`: the surface there is in front of it. That
