@@ -114,14 +114,18 @@ def test_observed_view_hides_what_is_behind_the_observed_surface():
     np.testing.assert_array_equal(visible, [False, False, True, True, True, True])
 
 
+def _patch(xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
+    """(len(xs) * len(ys), 3) points of a flat patch facing the camera 2 m away, m."""
+    x, y = np.meshgrid(xs, ys, indexing='ij')
+    return np.column_stack([x.ravel(), y.ravel(), np.full(x.size, 2.0)])
+
+
 def test_silhouette_targets_are_the_points_just_outside_it_on_the_nearest_observed_ray():
     """A patch of observations 14 cm wide, 2 m away (rays 0.5 cm apart there): a point 3 cm
     beyond its edge is outside and is pulled onto the edge's ray at its own range, whatever
     its depth; points over the patch, at its rim (within three ray spacings) or beyond the
     reach are not."""
-    xs, ys = np.arange(-0.07, 0.0701, 0.005), np.arange(-0.1, 0.1001, 0.005)
-    observed = np.array([[x, y, 2.0] for x in xs for y in ys])
-    view = ObservedView(observed)
+    view = ObservedView(_patch(np.arange(-0.07, 0.0701, 0.005), np.arange(-0.1, 0.1001, 0.005)))
     probes = np.array([[0.0, 0.0, 2.0], [0.1, 0.0, 2.0], [0.1, 0.0, 1.8], [0.075, 0.0, 2.0], [0.5, 0.0, 2.0]])
     outside, targets = view.silhouette_targets(probes, reach=0.1)
     np.testing.assert_array_equal(outside, [False, True, True, False, False])
@@ -137,10 +141,10 @@ def test_free_space_pulls_a_patch_that_slid_along_itself_back_under_its_silhouet
     of the model hanging out past the observed edge is pulled in too, and the slide left
     after the frame is clearly smaller than with the E-step alone."""
     grid = np.arange(-0.1, 0.1001, 0.01)
-    rest = np.array([[x, y, 2.0] for x in grid for y in grid])
+    rest = _patch(grid, grid)
     fine = np.arange(-0.1, 0.1001, 0.005)
     for shift in (0.02, 0.04, 0.06):
-        observed = np.array([[x + shift, y, 2.0] for x in fine for y in fine])
+        observed = _patch(fine + shift, fine)
         left = {}
         for free_space in (0.0, 3.0):
             result = NonRigidRegistration(rest, RegistrationParams(free_space=free_space)).register_frame(observed)
