@@ -7,8 +7,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 # a point is outside the silhouette when no observed ray passes within this many ray
-# spacings of its own: the segmentation and the sensor's edge filtering take a pixel or two
-# off a limb's rim, which should not pull the model's rim inwards
+# spacings of its own: the segmentation and the sensor's edge filtering can take a pixel or
+# two off a limb's rim, which should not pull the model's rim inwards
 SILHOUETTE_SPACINGS = 3.0
 
 
