@@ -12,6 +12,12 @@ from scipy.spatial import cKDTree
 SILHOUETTE_SPACINGS = 3.0
 
 
+def _rays(points: np.ndarray) -> tuple:
+    """(ranges (M,) m, unit directions (M, 3)) of points (M, 3) m from the camera."""
+    ranges = np.linalg.norm(points, axis=1)
+    return ranges, points / np.maximum(ranges, 1e-9)[:, None]
+
+
 class ObservedView:
     """What the camera saw of one frame, as directions and ranges from the camera (the
     origin of the cloud frame), to tell which model points it could have seen and which lie
@@ -27,9 +33,7 @@ class ObservedView:
     """
 
     def __init__(self, observed: np.ndarray):
-        ranges = np.linalg.norm(observed, axis=1)
-        self.ranges = ranges
-        self.directions = observed / np.maximum(ranges, 1e-9)[:, None]
+        self.ranges, self.directions = _rays(observed)
         self.tree = cKDTree(self.directions)
         # the angular pixel footprint: how far apart neighbouring rays are
         self.ray_spacing = float(np.median(self.tree.query(self.directions, k=2)[0][:, 1]))
@@ -37,9 +41,8 @@ class ObservedView:
     def visible(self, points: np.ndarray, margin: float) -> np.ndarray:
         """(M,) bool: no observation within 1.5 ray spacings of the point's ray is more
         than `margin` (m) nearer the camera. points (M, 3)."""
-        ranges = np.linalg.norm(points, axis=1)
-        _, nearest = self.tree.query(points / np.maximum(ranges, 1e-9)[:, None], k=4,
-                                     distance_upper_bound=1.5 * self.ray_spacing)
+        ranges, directions = _rays(points)
+        _, nearest = self.tree.query(directions, k=4, distance_upper_bound=1.5 * self.ray_spacing)
         found = nearest < len(self.ranges)
         in_front = np.where(found, self.ranges[np.where(found, nearest, 0)], np.inf)
         return (in_front.min(axis=1) >= ranges - margin)
@@ -51,8 +54,8 @@ class ObservedView:
         (m) of the point itself, across its ray (farther ones are a lost part's, which the
         nearest ray would hand to whatever limb is next to it); its target lies on the
         nearest observed ray, at the point's own range."""
-        ranges = np.linalg.norm(points, axis=1)
+        ranges, directions = _rays(points)
         # chord between unit vectors: the angle (rad) for the small angles that matter here
-        angle, nearest = self.tree.query(points / np.maximum(ranges, 1e-9)[:, None])
+        angle, nearest = self.tree.query(directions)
         outside = (angle > SILHOUETTE_SPACINGS * self.ray_spacing) & (angle * ranges <= reach)
         return outside, self.directions[nearest] * ranges[:, None]
