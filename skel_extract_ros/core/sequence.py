@@ -103,7 +103,8 @@ class SequenceRegistration:
             if self.keep_observed:
                 self.observed_.append(subject.observed.astype(np.float32))
             results.append(None)
-            record(registrar(subject.observed, subject.segmentation, frame=index))
+            # a sequence's frames are evenly spaced: the index is their time (inertia's step)
+            record(registrar(subject.observed, subject.segmentation, frame=index, stamp=float(index)))
         record(registrar.flush())
         points = [result.points.astype(np.float32) for result in results]
         statuses = [result.status for result in results]

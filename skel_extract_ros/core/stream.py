@@ -105,8 +105,9 @@ class InProcessRegistration:
     def install(self, registration: NonRigidRegistration) -> None:
         self.registration = registration
 
-    def register_frame(self, observed: np.ndarray, start_points: np.ndarray | None = None) -> FrameResult:
-        return self.registration.register_frame(observed, start_points)
+    def register_frame(self, observed: np.ndarray, start_points: np.ndarray | None = None,
+                       stamp: float | None = None) -> FrameResult:
+        return self.registration.register_frame(observed, start_points, stamp)
 
 
 @dataclass
@@ -130,11 +131,13 @@ class FrameStep:
 @dataclass
 class _HeldFrame:
     """A frame held while the rest pose's frame is chosen: its subject (N, 3) m, the
-    caller's token, and whether the gate let it through (it may become the rest pose)."""
+    caller's token, whether the gate let it through (it may become the rest pose), and its
+    stamp (s, or None)."""
 
     observed: np.ndarray
     frame: object
     candidate: bool
+    stamp: float | None = None
 
 
 class FrameRegistrar:
@@ -172,18 +175,19 @@ class FrameRegistrar:
         self.held = []
 
     def __call__(self, observed: np.ndarray, segmentation: Segmentation,
-                 start_points: np.ndarray | None = None, frame=None) -> list:
+                 start_points: np.ndarray | None = None, frame=None, stamp: float | None = None) -> list:
         """observed (N, 3) m: the frame's subject; start_points (M, 3) m or None; frame: the
-        caller's token, returned in the step. The FrameSteps of the frames this one
+        caller's token, returned in the step; stamp: the frame's time (s) when frames may be
+        skipped (RegistrationParams.inertia), None for evenly spaced ones. The FrameSteps of the frames this one
         completes, in the order given: this frame's alone, or none while it is held for
         the rest pose's choice, or every held frame's once the choice is made."""
         if self.rest_pose is None:
             waiting = self.gate.reason_to_wait(segmentation, len(observed))
             if waiting is not None and not self.held:
                 return [FrameStep(waiting, frame=frame)]
-            self.held.append(_HeldFrame(observed, frame, waiting is None))
+            self.held.append(_HeldFrame(observed, frame, waiting is None, stamp))
             return self.flush() if len(self.held) >= self.rest_params.choice_frames else []
-        return [self._register(observed, start_points, frame)]
+        return [self._register(observed, start_points, frame, stamp)]
 
     def flush(self) -> list:
         """The held frames' FrameSteps now: the rest pose from the frames held so far."""
@@ -213,13 +217,14 @@ class FrameRegistrar:
             if len(order):
                 self.registration.install(NonRigidRegistration(rest_pose.points, self.params))
             for i in order:
-                steps[i] = self._register(held[i].observed, None, held[i].frame)
+                steps[i] = self._register(held[i].observed, None, held[i].frame, held[i].stamp)
         steps[chosen].rest_pose_built, steps[chosen].seconds_rest_pose = True, seconds_rest_pose
         return steps
 
-    def _register(self, observed: np.ndarray, start_points: np.ndarray | None, frame) -> FrameStep:
+    def _register(self, observed: np.ndarray, start_points: np.ndarray | None, frame,
+                  stamp: float | None) -> FrameStep:
         started = time.perf_counter()
-        result = self.registration.register_frame(observed, start_points)
+        result = self.registration.register_frame(observed, start_points, stamp)
         return FrameStep(result.status, result, started_from_given=start_points is not None, frame=frame,
                          seconds_registration=time.perf_counter() - started)
 

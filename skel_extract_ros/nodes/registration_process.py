@@ -169,11 +169,13 @@ class RegistrationProcess:
         """Register the next frames with `registration` (a new rest pose)."""
         self._child.call('install', registration)
 
-    def register_frame(self, observed: np.ndarray, start_points: np.ndarray | None = None) -> FrameResult:
+    def register_frame(self, observed: np.ndarray, start_points: np.ndarray | None = None,
+                       stamp: float | None = None) -> FrameResult:
         """observed: (N, 3) subject points, metres -> the FrameResult of Alg. 1 on it;
-        start_points (M, 3): see NonRigidRegistration.register_frame."""
+        start_points (M, 3) and stamp (s): see NonRigidRegistration.register_frame."""
         return self._child.call('register_frame', np.ascontiguousarray(observed, dtype=np.float64),
-                                None if start_points is None else np.asarray(start_points, dtype=np.float64))
+                                None if start_points is None else np.asarray(start_points, dtype=np.float64),
+                                stamp)
 
     def restart(self) -> None:
         """A new child at the node's priority (after ChildProcessDied, or to learn a new

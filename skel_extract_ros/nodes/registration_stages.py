@@ -301,7 +301,7 @@ class RegistrationStages:
                              'until something moves')
         live_start = self._live_start(stamp)
         self._publish_steps(self._surviving_the_child(
-            lambda: self.frame_registrar(observed, frame.segmentation, live_start, frame)))
+            lambda: self.frame_registrar(observed, frame.segmentation, live_start, frame, stamp * 1e-9)))
 
     def _surviving_the_child(self, registrar_call) -> list:
         """registrar_call()'s FrameSteps, or none when the registration process died under

@@ -55,6 +55,10 @@ class NonRigidRegistration(GraphTerms, GraphMStep):
         self.rotations = np.tile(np.eye(3), (n_nodes, 1, 1))
         self.translations = np.zeros((n_nodes, 3))
         self.points = rest_points.copy()
+        # inertia: the registered points before the last registered frame (None at the rest
+        # pose) and the stamps (s) of both, when the caller gives them
+        self._previous_points = None
+        self._stamps = (None, None)
         self._prepare()
         # coarse_to_fine: the coarser graph of the first pass, and how far the fastest node
         # moved in the last registered frame (m; 0 before there is one)
@@ -62,7 +66,7 @@ class NonRigidRegistration(GraphTerms, GraphMStep):
         self.last_step_ = 0.0
         self.coarse_chosen_ = 0     # frames whose result came from the coarse start
         if self.params.coarse_to_fine:
-            coarse = replace(self.params, coarse_to_fine=False, recapture=False,
+            coarse = replace(self.params, coarse_to_fine=False, recapture=False, inertia=0.0,
                              node_spacing=self.params.coarse_spacing_factor * spacing)
             self._coarse = NonRigidRegistration(rest_points, coarse)
 
@@ -75,6 +79,8 @@ class NonRigidRegistration(GraphTerms, GraphMStep):
         self.rotations[:] = np.eye(3)
         self.translations[:] = 0.0
         self.points = self.rest_points.copy()
+        self._previous_points = None
+        self._stamps = (None, None)
         self.last_step_ = 0.0
 
     # ----------------------------------------------------------------------------------
@@ -245,6 +251,27 @@ class NonRigidRegistration(GraphTerms, GraphMStep):
             state.translations[nodes] = before[nodes] @ rotation.T + shift - graph.node_positions[nodes]
         state.points = self._contributions(state.rotations, state.translations).sum(axis=1)
 
+    def _carried_on(self, stamp: float | None) -> np.ndarray:
+        """(M, 3) m: where `inertia` starts a frame's EM: the registered points moved on by
+        inertia x their last step, scaled by the time to this frame's `stamp` (s) over the
+        last step's when the stamps are known (registered frames need not be evenly spaced),
+        each point's move at most the E-step's reach at initial_sigma2.
+
+        Why: the data term pulls a limb only across its surface. Along a featureless limb a
+        shifted model fits the observations as well, and only the limb's end pulls it on, so
+        EM from the last pose lags a limb that swings or slides along itself, more each
+        frame, until it is lost. From the carried-on pose a part keeps its pace unless the
+        observations pull it elsewhere."""
+        p = self.params
+        scale = p.inertia
+        last, before = self._stamps
+        if stamp is not None and last is not None and before is not None and last != before:
+            scale *= max(0.0, (stamp - last) / (last - before))
+        step = scale * (self.points - self._previous_points)
+        length = np.linalg.norm(step, axis=1, keepdims=True)
+        reach = p.truncation_sigmas * np.sqrt(p.initial_sigma2)
+        return self.points + step * np.minimum(1.0, reach / np.maximum(length, 1e-12))
+
     def transforms_onto(self, points: np.ndarray) -> tuple:
         """Node transforms (rotations (J, 3, 3), translations (J, 3)) that carry the rest
         points onto `points` (M, 3) m, e.g. a pose predicted by a tracker: each node's
@@ -260,12 +287,15 @@ class NonRigidRegistration(GraphTerms, GraphMStep):
         return rotations, centres + np.einsum('jik,jk->ji', rotations, g) - g
 
     # ----------------------------------------------------------------------------------
-    def register_frame(self, observed: np.ndarray, start_points: np.ndarray | None = None) -> FrameResult:
+    def register_frame(self, observed: np.ndarray, start_points: np.ndarray | None = None,
+                       stamp: float | None = None) -> FrameResult:
         """Register one frame's observed points (N, 3), metres: EM from the previous frame's
-        state, or, with start_points (M, 3) (a predicted pose of the registered points,
-        e.g. the live skeleton fit of a newer frame than the last registered one), from the
-        node transforms that carry the rest points onto it (`transforms_onto`). A frame
-        that is empty or diverges leaves the state as it was."""
+        state (carried on by its last step with `inertia`), or, with start_points (M, 3) (a
+        predicted pose of the registered points, e.g. the live skeleton fit of a newer frame
+        than the last registered one), from the node transforms that carry the rest points
+        onto it (`transforms_onto`). stamp: the frame's time (s), which scales `inertia`'s
+        step when frames are skipped; None = evenly spaced. A frame that is empty or
+        diverges leaves the state as it was."""
         p = self.params
         observed = np.asarray(observed, dtype=np.float64)
         if observed.ndim != 2 or observed.shape[1] != 3:
@@ -273,6 +303,8 @@ class NonRigidRegistration(GraphTerms, GraphMStep):
         observed = np.ascontiguousarray(observed[finite_rows(observed)])
         if len(observed) < p.min_points:
             return FrameResult(self.points.copy(), STATUS_EMPTY, float('nan'), 0, 0.0)
+        if start_points is None and p.inertia > 0 and self._previous_points is not None:
+            start_points = self._carried_on(stamp)
         start = (self.rotations.copy(), self.translations.copy()) if start_points is None \
             else self.transforms_onto(start_points)
 
@@ -297,6 +329,8 @@ class NonRigidRegistration(GraphTerms, GraphMStep):
             return FrameResult(self.points.copy(), STATUS_DIVERGED, float(sigma2), iterations,
                                float(matched_fraction), energies)
         self.last_step_ = float(np.max(np.linalg.norm(translations - self.translations, axis=1)))
+        self._previous_points = self.points
+        self._stamps = (stamp, self._stamps[0])
         self.rotations, self.translations, self.points = rotations, translations, points
         return FrameResult(points.copy(), STATUS_OK, float(sigma2), iterations, float(matched_fraction), energies,
                            state.recaptured)
