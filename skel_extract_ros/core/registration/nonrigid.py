@@ -266,7 +266,10 @@ class NonRigidRegistration(GraphTerms, GraphMStep):
         scale = p.inertia
         last, before = self._stamps
         if stamp is not None and last is not None and before is not None and last != before:
-            scale *= max(0.0, (stamp - last) / (last - before))
+            # in frames, to a tenth: a camera's stamps jitter by a fraction of a frame, and
+            # evenly spaced frames then give exactly the step of frames counted by index
+            # (`run` and a lossless replay of the same bag register alike)
+            scale *= max(0.0, round((stamp - last) / (last - before), 1))
         step = scale * (self.points - self._previous_points)
         length = np.linalg.norm(step, axis=1, keepdims=True)
         reach = p.truncation_sigmas * np.sqrt(p.initial_sigma2)
