@@ -178,9 +178,9 @@ class FrameRegistrar:
                  start_points: np.ndarray | None = None, frame=None, stamp: float | None = None) -> list:
         """observed (N, 3) m: the frame's subject; start_points (M, 3) m or None; frame: the
         caller's token, returned in the step; stamp: the frame's time (s) when frames may be
-        skipped (RegistrationParams.inertia), None for evenly spaced ones. The FrameSteps of the frames this one
-        completes, in the order given: this frame's alone, or none while it is held for
-        the rest pose's choice, or every held frame's once the choice is made."""
+        skipped (RegistrationParams.inertia), None for evenly spaced ones. The FrameSteps of
+        the frames this one completes, in the order given: this frame's alone, or none while
+        it is held for the rest pose's choice, or every held frame's once the choice is made."""
         if self.rest_pose is None:
             waiting = self.gate.reason_to_wait(segmentation, len(observed))
             if waiting is not None and not self.held:
