@@ -41,7 +41,7 @@ class RegistrationParams:
                                   "silhouette, within the E-step's reach of it, is pulled onto the nearest observed "
                                   'ray at its own range, weighted this x the median posterior mass of the points '
                                   'with data; 0 = off (the paper), dimensionless', 0.0, INF)
-    inertia: float = parameter(0.75, "each frame's EM starts from the last registered points moved on by this x "
+    inertia: float = parameter(0.0, "each frame's EM starts from the last registered points moved on by this x "
                                'their last step (scaled to the time between frames when stamps are given; each '
                                "point at most the E-step's reach at initial_sigma2); 0 = from the last "
                                'registered pose (the paper), dimensionless', 0.0, 1.0)
