@@ -119,27 +119,43 @@ def test_inertia_keeps_a_real_runners_legs():
     assert errors[0.75] < 0.75 * errors[0.0], errors
 
 
-def test_inertia_carries_the_last_step_on_scaled_to_the_time_between_frames():
-    """The start `inertia` gives a frame: the last registered points moved on by inertia x
-    their last step, scaled by the time to this frame over the last step's when stamps
-    are given, each point's move capped at the E-step's reach at initial_sigma2."""
+def test_inertia_carries_on_the_step_the_last_two_steps_agree_on():
+    """The start `inertia` gives a frame, on hand-made steps of every point: a steady motion
+    carries inertia x its step on; a limb slowing down, the step the slowing predicts; one
+    speeding up, the earlier step; a reversal, a one-frame jump (EM catching up) or a stop,
+    nothing. Steps are scaled to the stamps, and each point moves at most the E-step's
+    reach at initial_sigma2."""
     grid = np.arange(-0.1, 0.1001, 0.01)
     patch = _patch(grid, grid)
     registration = NonRigidRegistration(patch, RegistrationParams(inertia=0.5))
-    step = np.array([0.0, 0.0, -0.01])      # towards the camera: the data fix it
-    for stamp, shift in ((0.0, step), (0.1, 2 * step)):
-        assert registration.register_frame(patch + shift, stamp=stamp).status == 'ok'
-    last_step = registration.points - registration._previous_points
-    np.testing.assert_allclose(last_step.mean(axis=0), step, atol=0.002)
-    # the next frame 0.2 s later: twice the last interval, so the whole last step
-    np.testing.assert_allclose(registration._carried_on(0.3), registration.points + last_step, atol=1e-12)
-    # no stamp: evenly spaced, half the last step
-    np.testing.assert_allclose(registration._carried_on(None), registration.points + 0.5 * last_step, atol=1e-12)
-    # a long gap: each point moves at most the E-step's reach at initial_sigma2
+    x, y = np.array([0.01, 0.0, 0.0]), np.array([0.0, 0.01, 0.0])
+
+    def carried(earlier_step, last_step, stamps=(None, None, None), stamp=None):
+        registration._earlier_points = patch
+        registration._previous_points = patch + earlier_step
+        registration.points = patch + earlier_step + last_step
+        registration._stamps = stamps
+        moved = registration._carried_on(stamp) - registration.points
+        np.testing.assert_allclose(moved, moved[:1].repeat(len(moved), axis=0), atol=1e-12)
+        return moved[0]
+
+    np.testing.assert_allclose(carried(x, x), 0.5 * x, atol=1e-12)               # steady
+    np.testing.assert_allclose(carried(1.5 * x, x), 0.25 * x, atol=1e-12)         # slowing: 0.5 x next
+    np.testing.assert_allclose(carried(2 * x, x), 0 * x, atol=1e-12)              # slowing to a stop
+    np.testing.assert_allclose(carried(0.5 * x, x), 0.25 * x, atol=1e-12)         # speeding up
+    np.testing.assert_allclose(carried(x + y, x), 0.5 * x, atol=1e-12)            # only along the last
+    for earlier_step in (-x, 0 * x, y):                                           # reversal, jump, turn
+        np.testing.assert_allclose(carried(earlier_step, x), 0 * x, atol=1e-12)
+    np.testing.assert_allclose(carried(x, 0 * x), 0 * x, atol=1e-12)              # stopped
+    # stamps: the last step took 0.1 s, the earlier one 0.2 s (a frame skipped), so the
+    # two agree on x a tenth of a second; the next frame 0.2 s later carries 2 x 0.5 x
+    stamps = (0.3, 0.2, 0.0)
+    np.testing.assert_allclose(carried(2 * x, x, stamps, 0.4), 0.5 * x, atol=1e-12)
+    np.testing.assert_allclose(carried(2 * x, x, stamps, 0.5), x, atol=1e-12)
+    # a fast steady motion: each point moves at most the E-step's reach
     params = registration.params
     reach = params.truncation_sigmas * np.sqrt(params.initial_sigma2)
-    moved = np.linalg.norm(registration._carried_on(100.0) - registration.points, axis=1)
-    assert moved.max() == pytest.approx(reach)
+    assert np.linalg.norm(carried(20 * x, 20 * x)) == pytest.approx(reach)
     with pytest.raises(ValueError, match='inertia'):
         RegistrationParams(inertia=1.5)
 

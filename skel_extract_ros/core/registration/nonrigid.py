@@ -55,10 +55,12 @@ class NonRigidRegistration(GraphTerms, GraphMStep):
         self.rotations = np.tile(np.eye(3), (n_nodes, 1, 1))
         self.translations = np.zeros((n_nodes, 3))
         self.points = rest_points.copy()
-        # inertia: the registered points before the last registered frame (None at the rest
-        # pose) and the stamps (s) of both, when the caller gives them
+        # inertia: the registered points of the two registered frames before the last (None
+        # until there are) and the stamps (s) of the three, newest first, when the caller
+        # gives them
         self._previous_points = None
-        self._stamps = (None, None)
+        self._earlier_points = None
+        self._stamps = (None, None, None)
         self._prepare()
         # coarse_to_fine: the coarser graph of the first pass, and how far the fastest node
         # moved in the last registered frame (m; 0 before there is one)
@@ -80,7 +82,8 @@ class NonRigidRegistration(GraphTerms, GraphMStep):
         self.translations[:] = 0.0
         self.points = self.rest_points.copy()
         self._previous_points = None
-        self._stamps = (None, None)
+        self._earlier_points = None
+        self._stamps = (None, None, None)
         self.last_step_ = 0.0
 
     # ----------------------------------------------------------------------------------
@@ -252,28 +255,43 @@ class NonRigidRegistration(GraphTerms, GraphMStep):
         state.points = self._contributions(state.rotations, state.translations).sum(axis=1)
 
     def _carried_on(self, stamp: float | None) -> np.ndarray:
-        """(M, 3) m: where `inertia` starts a frame's EM: the registered points moved on by
-        inertia x their last step, scaled by the time to this frame's `stamp` (s) over the
-        last step's when the stamps are known (registered frames need not be evenly spaced),
-        each point's move at most the E-step's reach at initial_sigma2.
+        """(M, 3) m: where `inertia` starts a frame's EM: each registered point moved on along
+        its last step by inertia x the step its last two steps agree on: the smallest of the
+        last step, the earlier step's component along it, and the step that their change of
+        speed predicts (2 x last - earlier), never backwards. Steps are scaled to frames by
+        the stamps (s) when they are known (registered frames need not be evenly spaced);
+        each point moves at most the E-step's reach at initial_sigma2.
 
-        Why: the data term pulls a limb only across its surface. Along a featureless limb a
-        shifted model fits the observations as well, and only the limb's end pulls it on, so
-        EM from the last pose lags a limb that swings or slides along itself, more each
-        frame, until it is lost. From the carried-on pose a part keeps its pace unless the
-        observations pull it elsewhere."""
+        Why carry a step on: the data term pulls a limb only across its surface. Along a
+        featureless limb a shifted model fits the observations as well, and only the limb's
+        end pulls it on, so EM from the last pose lags a limb that swings or slides along
+        itself, more each frame, until it is lost. Why only the agreed step: a registered
+        step is the motion plus EM's correction of the frame before; carried on whole, a
+        catch-up or a limb slowing to a stop overshoots, and a reversal is pushed the wrong
+        way. The agreed step keeps a steady swing's pace and carries none of those."""
         p = self.params
-        scale = p.inertia
-        last, before = self._stamps
-        if stamp is not None and last is not None and before is not None and last != before:
-            # in frames, to a tenth: a camera's stamps jitter by a fraction of a frame, and
-            # evenly spaced frames then give exactly the step of frames counted by index
-            # (`run` and a lossless replay of the same bag register alike)
-            scale *= max(0.0, round((stamp - last) / (last - before), 1))
-        step = scale * (self.points - self._previous_points)
-        length = np.linalg.norm(step, axis=1, keepdims=True)
+        last, previous, earlier = self._stamps
+        last_step = self.points - self._previous_points
+        earlier_step = (self._previous_points - self._earlier_points) \
+            * self._frames_between(last, previous, previous, earlier)
+        length = np.linalg.norm(last_step, axis=1)
+        direction = last_step / np.maximum(length, 1e-12)[:, None]
+        along = np.einsum('ij,ij->i', earlier_step, direction)
+        agreed = np.maximum(0.0, np.minimum.reduce([length, along, 2.0 * length - along]))
+        step = p.inertia * self._frames_between(stamp, last, last, previous) * agreed
         reach = p.truncation_sigmas * np.sqrt(p.initial_sigma2)
-        return self.points + step * np.minimum(1.0, reach / np.maximum(length, 1e-12))
+        return self.points + direction * np.minimum(step, reach)[:, None]
+
+    @staticmethod
+    def _frames_between(end: float | None, start: float | None, reference_end: float | None,
+                        reference_start: float | None) -> float:
+        """The interval end - start (s) in units of the reference interval, to a tenth: a
+        camera's stamps jitter by a fraction of a frame, and evenly spaced frames then count
+        exactly as frames counted by index do (`run` and a lossless replay of the same bag
+        register alike). 1 when a stamp is unknown (evenly spaced)."""
+        if None in (end, start, reference_end, reference_start) or reference_end == reference_start:
+            return 1.0
+        return max(0.0, round((end - start) / (reference_end - reference_start), 1))
 
     def transforms_onto(self, points: np.ndarray) -> tuple:
         """Node transforms (rotations (J, 3, 3), translations (J, 3)) that carry the rest
@@ -293,7 +311,7 @@ class NonRigidRegistration(GraphTerms, GraphMStep):
     def register_frame(self, observed: np.ndarray, start_points: np.ndarray | None = None,
                        stamp: float | None = None) -> FrameResult:
         """Register one frame's observed points (N, 3), metres: EM from the previous frame's
-        state (carried on by its last step with `inertia`), or, with start_points (M, 3) (a
+        state (carried on by its agreed step with `inertia`), or, with start_points (M, 3) (a
         predicted pose of the registered points, e.g. the live skeleton fit of a newer frame
         than the last registered one), from the node transforms that carry the rest points
         onto it (`transforms_onto`). stamp: the frame's time (s), which scales `inertia`'s
@@ -306,7 +324,7 @@ class NonRigidRegistration(GraphTerms, GraphMStep):
         observed = np.ascontiguousarray(observed[finite_rows(observed)])
         if len(observed) < p.min_points:
             return FrameResult(self.points.copy(), STATUS_EMPTY, float('nan'), 0, 0.0)
-        if start_points is None and p.inertia > 0 and self._previous_points is not None:
+        if start_points is None and p.inertia > 0 and self._earlier_points is not None:
             start_points = self._carried_on(stamp)
         start = (self.rotations.copy(), self.translations.copy()) if start_points is None \
             else self.transforms_onto(start_points)
@@ -332,8 +350,8 @@ class NonRigidRegistration(GraphTerms, GraphMStep):
             return FrameResult(self.points.copy(), STATUS_DIVERGED, float(sigma2), iterations,
                                float(matched_fraction), energies)
         self.last_step_ = float(np.max(np.linalg.norm(translations - self.translations, axis=1)))
-        self._previous_points = self.points
-        self._stamps = (stamp, self._stamps[0])
+        self._earlier_points, self._previous_points = self._previous_points, self.points
+        self._stamps = (stamp, *self._stamps[:2])
         self.rotations, self.translations, self.points = rotations, translations, points
         return FrameResult(points.copy(), STATUS_OK, float(sigma2), iterations, float(matched_fraction), energies,
                            state.recaptured)

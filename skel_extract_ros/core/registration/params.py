@@ -41,8 +41,9 @@ class RegistrationParams:
                                   "silhouette, within the E-step's reach of it, is pulled onto the nearest observed "
                                   'ray at its own range, weighted this x the median posterior mass of the points '
                                   'with data; 0 = off (the paper), dimensionless', 0.0, INF)
-    inertia: float = parameter(0.0, "each frame's EM starts from the last registered points moved on by this x "
-                               'their last step (scaled to the time between frames when stamps are given; each '
+    inertia: float = parameter(0.75, "each frame's EM starts from the last registered points moved on along their "
+                               'last step by this x the step their last two steps agree on (none on a reversal, '
+                               'less when slowing; scaled to the time between frames when stamps are given; each '
                                "point at most the E-step's reach at initial_sigma2); 0 = from the last "
                                'registered pose (the paper), dimensionless', 0.0, 1.0)
     recapture: bool = parameter(True, 'after EM, move a part left without data rigidly onto the observations '
