@@ -171,12 +171,14 @@ def _cmd_run(args) -> int:
     background = np.array([s.background_fraction for s in segments])
     write_registered(out, registered, stamps, registration.statuses_, registration.rest_pose_.points, frame_id,
                      sigma2=registration.sigma2_, recaptured=registration.recaptured_,
-                     subject_points=subject_points, background_fraction=background,
+                     landmarks=registration.landmarks_, subject_points=subject_points, background_fraction=background,
                      segmentation=np.array([s.status for s in segments]))
     recaptures = int(registration.recaptured_.sum())
+    with_landmarks = int((registration.landmarks_ > 0).sum())
     print(f'registered {len(registered)} frames of {registered.shape[1]} points -> {out / "registered.npz"}'
           f'  ({", ".join(f"{n} {status}" for status, n in sorted(counts.items()))}'
-          f'{f"; {recaptures} lost parts recaptured" if recaptures else ""}; '
+          f'{f"; {recaptures} lost parts recaptured" if recaptures else ""}'
+          f'{f"; limb ends matched in {with_landmarks} frames" if with_landmarks else ""}; '
           f'rest pose from frame {registration.rest_frame_}, the most spread-out of up to '
           f'{registration.rest_params.choice_frames} from the first usable)')
     with_subject = subject_points > 0

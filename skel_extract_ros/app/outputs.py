@@ -10,7 +10,7 @@ import numpy as np
 
 # registered.npz's per-frame arrays beyond points, stamps and status, and what a frame
 # without the value holds (replay receives only the registered points from the nodes)
-REGISTRATION_DETAILS = {'sigma2': np.nan, 'recaptured': -1, 'subject_points': -1,
+REGISTRATION_DETAILS = {'sigma2': np.nan, 'recaptured': -1, 'landmarks': -1, 'subject_points': -1,
                         'background_fraction': np.nan, 'segmentation': ''}
 
 

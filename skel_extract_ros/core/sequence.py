@@ -43,9 +43,10 @@ class SequenceRegistration:
     Parameters are dataclasses (see their docstrings). Frames before the rest pose get NaN
     points and status 'empty'. Attributes set by `register` (sklearn style): rest_pose_,
     rest_frame_ (the index of the frame it was built from),
-    statuses_ (F,), sigma2_ (F,), iterations_ (F,), recaptured_ (F,) parts recaptured, times_, segmentation_ (F,) Segmentation
-    summaries (status, subject points, background fraction, moving regions; masks dropped),
-    and with keep_observed the preprocessed frames observed_ (list of (N_t, 3) float32).
+    statuses_ (F,), sigma2_ (F,), iterations_ (F,), recaptured_ (F,) parts recaptured,
+    landmarks_ (F,) limb ends matched, times_, segmentation_ (F,) Segmentation summaries
+    (status, subject points, background fraction, moving regions; masks dropped), and with
+    keep_observed the preprocessed frames observed_ (list of (N_t, 3) float32).
     """
 
     def __init__(self, params: RegistrationParams | None = None,
@@ -111,10 +112,12 @@ class SequenceRegistration:
         sigma2 = [result.sigma2 for result in results]
         iterations = [result.iterations for result in results]
         recaptured = [result.recaptured for result in results]
+        landmarks = [result.landmarks for result in results]
         self.statuses_ = np.array(statuses)
         self.sigma2_ = np.array(sigma2)
         self.iterations_ = np.array(iterations)
         self.recaptured_ = np.array(recaptured, dtype=int)
+        self.landmarks_ = np.array(landmarks, dtype=int)
         if not points:
             return np.empty((0, M, 3), dtype=np.float32)
         return np.stack(points)

@@ -29,6 +29,15 @@ and a group of observations beyond every centroid's reach are matched, the part 
 rigidly onto them and EM is re-run from there; the result is kept if it explains more of the
 frame (larger N_p).
 
+Extremity landmarks (`extremity_weight` > 0, core/extremities.py): the data term cannot tell
+where along a featureless limb the model sits, only the limb's end can, and Eq. 3 gives that
+end a few observations among many. Each frame the geodesic extremities of the observed
+points (the limbs' ends) are matched to the rest points' own (where the frame starts them),
+and in every M-step each matched end of the model gets pseudo-observations that move it, as
+a whole, onto its partner's centroid. The data's statistics (Eq. 7's sigma2, the energy,
+what recapture reads) are left as they are: the landmarks only steer the M-step, so, as
+with `free_space`, the statement below is for the objective without them.
+
 Convergence: the quantity EM decreases is the negative log-likelihood of Eq. (1) plus
 beta_smooth / 2 E_smooth (E_small vanishes at the previous iterate, so it acts as a
 proximal term and cannot make the objective rise). `FrameResult.energies` reports exactly
@@ -44,7 +53,7 @@ The module per part: `params` (RegistrationParams, FrameResult, the frame status
 `graph_terms` (the deformation graph's precomputed structures and E_smooth, robust or
 quadratic), `m_step` (the exact blocks of the M-step, Eq. 4-6), `visibility` (which model
 points the camera could have seen, and which lie outside the silhouette), `nonrigid`
-(NonRigidRegistration: the EM loop of Alg. 1 over them, recapture).
+(NonRigidRegistration: the EM loop of Alg. 1 over them, recapture, the landmarks).
 """
 from .graph_terms import GraphTerms
 from .m_step import GraphMStep

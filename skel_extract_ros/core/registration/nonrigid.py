@@ -7,6 +7,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..deformation_graph import DeformationGraph
+from ..extremities import find_extremities, match_extremities
 from ..gmm import CandidateCache, GMMStatistics, gmm_posteriors
 from ..point_sets import finite_rows, median_spacing
 from ..recapture import find_recaptures, lost_parts
@@ -62,13 +63,20 @@ class NonRigidRegistration(GraphTerms, GraphMStep):
         self._earlier_points = None
         self._stamps = (None, None, None)
         self._prepare()
+        # extremity landmarks: the rest points' own limb ends, and this frame's matched pairs
+        # (model region indices, observed centroid (3,) m)
+        self._extremities = None
+        self._landmarks = []
+        if self.params.extremity_weight > 0:
+            self._centre = int(np.argmin(np.linalg.norm(rest_points - rest_points.mean(axis=0), axis=1)))
+            self._extremities = find_extremities(rest_points, self._centre)
         # coarse_to_fine: the coarser graph of the first pass, and how far the fastest node
         # moved in the last registered frame (m; 0 before there is one)
         self._coarse = None
         self.last_step_ = 0.0
         self.coarse_chosen_ = 0     # frames whose result came from the coarse start
         if self.params.coarse_to_fine:
-            coarse = replace(self.params, coarse_to_fine=False, recapture=False, inertia=0.0,
+            coarse = replace(self.params, coarse_to_fine=False, recapture=False, inertia=0.0, extremity_weight=0.0,
                              node_spacing=self.params.coarse_spacing_factor * spacing)
             self._coarse = NonRigidRegistration(rest_points, coarse)
 
@@ -84,6 +92,7 @@ class NonRigidRegistration(GraphTerms, GraphMStep):
         self._previous_points = None
         self._earlier_points = None
         self._stamps = (None, None, None)
+        self._landmarks = []
         self.last_step_ = 0.0
 
     # ----------------------------------------------------------------------------------
@@ -126,6 +135,42 @@ class NonRigidRegistration(GraphTerms, GraphMStep):
         return GMMStatistics(P1, estep.Px + weight[:, None] * targets, float(P1.sum()), estep.nll,
                              estep.weighted_sq)
 
+    def _match_landmarks(self, observed: np.ndarray, start_points: np.ndarray) -> list:
+        """This frame's extremity landmarks: the geodesic extremities of the observed points
+        (N, 3) m, from the observed point nearest where the frame starts the rest points'
+        centre, matched to the model's ends where the frame starts them (start_points (M, 3)
+        m; core.extremities.match_extremities). The reach of a model end: the E-step's reach
+        at initial_sigma2, plus as far as the end moved in the last registered frame, up to
+        as much again (a fast limb's start is further off; a lost one must not widen its own
+        reach frame after frame). -> [(model region indices, observed end's centroid (3,) m)]."""
+        model = self._extremities
+        centre = int(np.argmin(np.linalg.norm(observed - start_points[self._centre], axis=1)))
+        found = find_extremities(observed, centre)
+        reach = np.full(len(model), self.params.truncation_sigmas * np.sqrt(self.params.initial_sigma2))
+        if self._previous_points is not None:
+            last_step = self.points - self._previous_points
+            moved = np.array([np.linalg.norm(last_step[region].mean(axis=0)) for region in model.regions])
+            reach += np.minimum(moved, reach)
+        pairs = match_extremities(model, start_points, found, reach)
+        return [(model.regions[k], found.centroids[l]) for k, l in pairs]
+
+    def _with_landmarks(self, estep: GMMStatistics, points: np.ndarray) -> GMMStatistics:
+        """The statistics the M-step fits with the extremity landmarks: each matched model end
+        (its region of the points (M, 3) m) gets pseudo-observations that move it, as a whole,
+        onto its observed partner's centroid, each of weight extremity_weight x the median
+        posterior mass of the points with data. Eq. 7's sigma2 and the energy keep the real
+        data's statistics."""
+        with_data = estep.P1 > 1e-3
+        if not with_data.any():
+            return estep
+        weight = self.params.extremity_weight * float(np.median(estep.P1[with_data]))
+        P1, Px = estep.P1.copy(), estep.Px.copy()
+        for region, target in self._landmarks:     # a few limb ends, not points
+            shift = target - points[region].mean(axis=0)
+            P1[region] += weight
+            Px[region] += weight * (points[region] + shift)
+        return GMMStatistics(P1, Px, float(P1.sum()), estep.nll, estep.weighted_sq)
+
     def _node_support(self, estep: GMMStatistics) -> np.ndarray:
         """(J,) posterior mass per carried point that each node's points received (0: no data)."""
         return (self._blend.T @ estep.P1) / self._node_mass
@@ -156,6 +201,8 @@ class NonRigidRegistration(GraphTerms, GraphMStep):
             if estep.Np <= 1e-9:
                 break
             fitted = self._with_silhouette(estep, points, view, sigma2) if silhouette else estep
+            if self._landmarks:
+                fitted = self._with_landmarks(fitted, points)
             if p.m_step == 'translations_rotations':
                 # IRLS: the robust edge weights are fixed at this iteration's transforms
                 stiffness = self.edge_stiffness(rotations, translations, sigma2,
@@ -330,6 +377,8 @@ class NonRigidRegistration(GraphTerms, GraphMStep):
             else self.transforms_onto(start_points)
 
         view = ObservedView(observed) if p.visibility or p.free_space > 0 else None
+        if self._extremities is not None and len(self._extremities):
+            self._landmarks = self._match_landmarks(observed, self._contributions(*start).sum(axis=1))
         state = self._em_from(observed, view, start)
         if self._coarse is not None:
             coarse_start = self._coarse_start(observed, start)
@@ -354,4 +403,4 @@ class NonRigidRegistration(GraphTerms, GraphMStep):
         self._stamps = (stamp, *self._stamps[:2])
         self.rotations, self.translations, self.points = rotations, translations, points
         return FrameResult(points.copy(), STATUS_OK, float(sigma2), iterations, float(matched_fraction), energies,
-                           state.recaptured)
+                           state.recaptured, len(self._landmarks))

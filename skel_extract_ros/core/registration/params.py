@@ -46,6 +46,11 @@ class RegistrationParams:
                                'less when slowing; scaled to the time between frames when stamps are given; each '
                                "point at most the E-step's reach at initial_sigma2); 0 = from the last "
                                'registered pose (the paper), dimensionless', 0.0, 1.0)
+    extremity_weight: float = parameter(3.0, "weight of the extremity landmarks: each frame the geodesic "
+                                        "extremities of the observed points (the limbs' ends, core.extremities) "
+                                        "are matched to the rest points' own, and each matched end of the model is "
+                                        "pulled onto its partner, weighted this x the median posterior mass of the "
+                                        "points with data; 0 = off (the paper), dimensionless", 0.0, INF)
     recapture: bool = parameter(True, 'after EM, move a part left without data rigidly onto the observations '
                                 'nothing explains and re-run EM (fast limbs)')
     initial_sigma2: float = parameter(6e-4, 'GMM variance at the start of every frame, m^2 (Sec. 7)', 1e-12, INF)
@@ -101,6 +106,8 @@ class FrameResult:
     sigma2: final variance (m^2); energies: objective after each E-step.
     matched_fraction: N_p / N, the share of the observations the GMM explains.
     recaptured: parts moved back onto their observations in this frame (`recapture`).
+    landmarks: the model's limb ends matched to the frame's and pulled onto them
+    (`extremity_weight`).
     """
 
     points: np.ndarray
@@ -110,3 +117,4 @@ class FrameResult:
     matched_fraction: float
     energies: list = field(default_factory=list)
     recaptured: int = 0
+    landmarks: int = 0
