@@ -245,7 +245,13 @@ def spin_node(node_factory, args=None) -> int:
     finally:
         if isinstance(node, WorkingNode):
             node.stop_work()
-        rclpy.try_shutdown()
+        try:
+            rclpy.try_shutdown()
+        except RuntimeError:
+            # the same race: try_shutdown checks the context, then the SIGINT handler's
+            # thread shuts it down first, and rcl says "already called"; the context is down
+            if rclpy.ok():
+                raise
     return 0
 
 
