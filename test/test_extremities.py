@@ -1,6 +1,7 @@
 """Geodesic extremities (core.extremities) on hand-made bodies: the limbs' ends found from the
-body's centre at any scale, a limb touching the body not taken for an end, and the matching of
-the model's ends to a frame's."""
+body's centre at any scale, a limb touching the body or a box-like trunk's corner not taken
+for an end, the matching of the model's ends to a frame's, and the registration's landmarks
+pulling back an arm slid along itself."""
 import numpy as np
 
 from skel_extract_ros.core.extremities import Extremities, find_extremities, match_extremities
