@@ -36,6 +36,20 @@ def _solid(capsules, spacing=0.02, jitter=0.0, seed=0):
     return points + np.random.default_rng(seed).normal(0.0, jitter, points.shape)
 
 
+def _shell(capsules, spacing):
+    """The surface of the union of capsules as points (N, 3): the grid points of `spacing` m
+    within one spacing inside it, about area / spacing^2 of them (a camera sees a surface,
+    and its density is what the preprocessing sets)."""
+    starts = np.array([c[0] for c in capsules], float)
+    ends = np.array([c[1] for c in capsules], float)
+    radii = np.array([c[2] for c in capsules])
+    points = _solid(capsules, spacing)
+    along = ends - starts
+    t = np.clip(np.einsum('pcj,cj->pc', points[:, None] - starts, along) / np.sum(along ** 2, axis=1), 0.0, 1.0)
+    depth = (radii - np.linalg.norm(points[:, None] - (starts + t[..., None] * along), axis=2)).max(axis=1)
+    return points[depth < spacing]
+
+
 def _extremities(points, scale=1.0):
     """find_extremities from the point nearest the torso's centre."""
     centre = int(np.argmin(np.linalg.norm(points - TORSO_CENTRE * scale, axis=1)))
@@ -111,7 +125,7 @@ def _ends(centroids, depth, sizes=None):
     for k, region in enumerate(regions):
         limbs[k, region] = True
     points = np.repeat(centroids, sizes, axis=0)
-    return Extremities(np.arange(len(centroids)), np.asarray(depth, float), regions, centroids, limbs), points
+    return Extremities(np.arange(len(centroids)), np.asarray(depth, float), regions, centroids, limbs, 0.01), points
 
 
 def test_matching_is_one_to_one_between_the_same_limbs_ends():
@@ -140,7 +154,7 @@ def test_matching_is_one_to_one_between_the_same_limbs_ends():
     hand, hand_points = _ends([[0.0, 0.0, -0.12]], [1.0])
     trunk = np.zeros((30, 3))
     beside = Extremities(hand.tips, hand.depth, hand.regions, hand.centroids,
-                         np.concatenate([hand.limbs, np.zeros((1, 30), dtype=bool)], axis=1))
+                         np.concatenate([hand.limbs, np.zeros((1, 30), dtype=bool)], axis=1), hand.spacing)
     corner, _ = _ends([[0.0, 0.0, -0.02]], [1.0])
     assert match_extremities(beside, np.vstack([hand_points, trunk]), corner, reach=0.3) == []
     assert match_extremities(hand, hand_points, corner, reach=0.3) == [(0, 0)]
@@ -150,6 +164,22 @@ def test_matching_is_one_to_one_between_the_same_limbs_ends():
         assert match_extremities(crowded, crowded_points, _ends([[0.05, 0.0, 0.0]], [1.0])[0],
                                  reach=0.3) == expected, second
     assert match_extremities(model, starts, _ends(np.zeros((0, 3)), [])[0], reach=0.3) == []
+
+
+def test_ends_pair_across_sampling_densities():
+    """The model's ends on a body's surface sampled at 3 cm against a frame of the same body
+    sampled at 1.5 cm, four times as densely (a subject nearer the camera than in its rest
+    frame): each end pairs with its own, since regions are compared by surface (points x
+    spacing^2), not by point count, which differs fourfold."""
+    model = _extremities(_shell(BODY, 0.03))
+    frame = _extremities(_shell(BODY, 0.015))
+    assert len(model) == len(frame) == 5, (len(model), len(frame))
+    counts = [len(r) for r in frame.regions]
+    assert np.median(counts) > 3 * np.median([len(r) for r in model.regions]), counts
+    model_points = _shell(BODY, 0.03)
+    pairs = match_extremities(model, model_points, frame, reach=0.1)
+    assert len(pairs) == 5, pairs
+    assert all(np.linalg.norm(model.centroids[k] - frame.centroids[l]) < 0.05 for k, l in pairs)
 
 
 def test_the_landmarks_pull_an_arm_that_slid_along_itself():

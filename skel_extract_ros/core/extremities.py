@@ -27,7 +27,9 @@ class Extremities:
     tip's geodesic distance from the centre; regions: K index arrays, each tip's end cap (the
     limb's end, whose centroid is matched: a single tip point is as noisy as one
     observation); centroids (K, 3) m: theirs; limbs (K, N) bool: the points within
-    limb_fraction x the tip's depth of it along the surface (the limb the end is on).
+    limb_fraction x the tip's depth of it along the surface (the limb the end is on);
+    spacing m: the set's median distance to the nearest other point, so a region's surface
+    is about its point count x spacing^2 whatever the set's density (`areas`).
     """
 
     tips: np.ndarray
@@ -35,17 +37,23 @@ class Extremities:
     regions: list
     centroids: np.ndarray
     limbs: np.ndarray
+    spacing: float
+
+    @property
+    def areas(self) -> np.ndarray:
+        """(K,) m^2: each end cap's surface, its points times the spacing squared."""
+        return np.array([len(region) for region in self.regions], dtype=np.float64) * self.spacing ** 2
 
     def __len__(self) -> int:
         return len(self.tips)
 
 
-def neighbour_graph(points: np.ndarray, neighbours: int = 8, max_edge_spacings: float = 3.0):
+def neighbour_graph(points: np.ndarray, neighbours: int = 8, max_edge_spacings: float = 3.0) -> tuple:
     """(N, N) sparse symmetric graph of each point (N, 3) to its nearest neighbours, edge
-    weights their distances (m); edges longer than max_edge_spacings x the set's spacing (the
-    median distance to the nearest other point, as point_sets.median_spacing) are left out,
-    so a gap in the surface (one leg in front of the other, a hand off the hip) is not
-    bridged."""
+    weights their distances (m), and the set's spacing (m: the median distance to the nearest
+    other point, as point_sets.median_spacing); edges longer than max_edge_spacings x the
+    spacing are left out, so a gap in the surface (one leg in front of the other, a hand off
+    the hip) is not bridged."""
     count = min(neighbours + 1, len(points))
     distances, indices = cKDTree(points).query(points, k=count)
     spacing = float(np.median(distances[:, 1]))
@@ -53,7 +61,7 @@ def neighbour_graph(points: np.ndarray, neighbours: int = 8, max_edge_spacings: 
     distances, indices = distances[:, 1:].ravel(), indices[:, 1:].ravel()
     keep = np.isfinite(distances) & (distances <= max_edge_spacings * spacing) & (distances > 0)
     graph = coo_matrix((distances[keep], (rows[keep], indices[keep])), shape=(len(points), len(points))).tocsr()
-    return graph.maximum(graph.T)
+    return graph.maximum(graph.T), spacing
 
 
 def find_extremities(points: np.ndarray, centre: int, cap_fraction: float = 0.1,
@@ -76,7 +84,7 @@ def find_extremities(points: np.ndarray, centre: int, cap_fraction: float = 0.1,
     the torso or two hands held together does not, and where its farthest point lies depends
     on what hides it, so it is no landmark."""
     points = np.asarray(points, dtype=np.float64)
-    graph = neighbour_graph(points)
+    graph, spacing = neighbour_graph(points)
     from_centre = dijkstra(graph, directed=False, indices=int(centre))
     nearest = from_centre.copy()
     tips = []
@@ -96,7 +104,7 @@ def find_extremities(points: np.ndarray, centre: int, cap_fraction: float = 0.1,
         nearest = np.minimum(nearest, dijkstra(graph, directed=False, indices=tip, limit=branch))
     tips = np.array(tips, dtype=np.int64)
     if len(tips) == 0:
-        return Extremities(tips, np.zeros(0), [], np.zeros((0, 3)), np.zeros((0, len(points)), dtype=bool))
+        return Extremities(tips, np.zeros(0), [], np.zeros((0, 3)), np.zeros((0, len(points)), dtype=bool), spacing)
     depth = from_centre[tips]
     caps = cap_fraction * depth
     limbs = limb_fraction * depth
@@ -112,7 +120,7 @@ def find_extremities(points: np.ndarray, centre: int, cap_fraction: float = 0.1,
     regions = [np.flatnonzero((row <= 2.0 * cap) & (from_centre >= from_centre[tip] - cap))
                for row, tip, cap in zip(around, tips, caps)]
     centroids = np.array([points[region].mean(axis=0) for region in regions]).reshape(-1, 3)
-    return Extremities(tips, depth, regions, centroids, around <= limbs[:, None])
+    return Extremities(tips, depth, regions, centroids, around <= limbs[:, None], spacing)
 
 
 def match_extremities(model: Extremities, model_points: np.ndarray, observed: Extremities, reach,
@@ -127,9 +135,11 @@ def match_extremities(model: Extremities, model_points: np.ndarray, observed: Ex
     - the model point nearest the observed end is on the model end's own limb (`limbs`): an
       end the frame left behind (a forearm swung away faster than EM follows) is not pulled
       onto another part's end that its own points already explain;
-    - their regions' point counts agree to a factor size_ratio: an end the model's own frame
-      saw cut short (a hand out of view, edge-on or hidden there) is not the end a frame sees
-      whole, and pulling one onto the other stretches the limb.
+    - their regions' surfaces (`areas`: point counts times each set's spacing squared, so a
+      frame sampled more densely than the rest points, a subject near the camera, compares
+      alike) agree to a factor size_ratio: an end the model's own frame saw cut short (a hand
+      out of view, edge-on or hidden there) is not the end a frame sees whole, and pulling
+      one onto the other stretches the limb.
     And a pair is kept only when every other model end is at least `distinct` x farther from
     the observed end than its partner (gated or not): two hands that meet, or a foot passing
     the other, are not told apart by where they are, and one wrong pull glues a limb to
@@ -142,9 +152,7 @@ def match_extremities(model: Extremities, model_points: np.ndarray, observed: Ex
     distance = np.linalg.norm(centroids[:, None, :] - observed.centroids[None, :, :], axis=2)
     nearest_point = np.argmin(np.linalg.norm(model_points[None, :, :] - observed.centroids[:, None, :], axis=2), axis=1)
     reach = np.broadcast_to(np.asarray(reach, dtype=np.float64), model.depth.shape)
-    model_size = np.array([len(region) for region in model.regions], dtype=np.float64)
-    observed_size = np.array([len(region) for region in observed.regions], dtype=np.float64)
-    ratio = observed_size[None, :] / np.maximum(model_size[:, None], 1.0)
+    ratio = observed.areas[None, :] / np.maximum(model.areas[:, None], 1e-12)
     allowed = (np.abs(observed.depth[None, :] - model.depth[:, None]) <= depth_tolerance * model.depth[:, None]) \
         & (distance <= reach[:, None]) & model.limbs[:, nearest_point] \
         & (ratio <= size_ratio) & (ratio >= 1.0 / size_ratio)

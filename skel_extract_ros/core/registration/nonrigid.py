@@ -9,7 +9,7 @@ import numpy as np
 from ..deformation_graph import DeformationGraph
 from ..extremities import find_extremities, match_extremities
 from ..gmm import CandidateCache, GMMStatistics, gmm_posteriors
-from ..point_sets import finite_rows, median_spacing
+from ..point_sets import finite_rows, median_spacing, voxel_centroids
 from ..recapture import find_recaptures, lost_parts
 from ..rigid import fit_weighted_segments, weighted_rigid_fit
 from .graph_terms import GraphTerms
@@ -137,15 +137,19 @@ class NonRigidRegistration(GraphTerms, GraphMStep):
 
     def _match_landmarks(self, observed: np.ndarray, start_points: np.ndarray) -> list:
         """This frame's extremity landmarks: the geodesic extremities of the observed points
-        (N, 3) m, from the observed point nearest where the frame starts the rest points'
-        centre, matched to the model's ends where the frame starts them (start_points (M, 3)
-        m; core.extremities.match_extremities). The reach of a model end: the E-step's reach
+        (N, 3) m, sampled at the rest points' spacing (their voxel centroids), from the
+        sample nearest where the frame starts the rest points' centre, matched to the model's
+        ends where the frame starts them (start_points (M, 3) m;
+        core.extremities.match_extremities). The reach of a model end: the E-step's reach
         at initial_sigma2, plus as far as the end moved in the last registered frame, up to
         as much again (a fast limb's start is further off; a lost one must not widen its own
         reach frame after frame). -> [(model region indices, observed end's centroid (3,) m)]."""
         model = self._extremities
-        centre = int(np.argmin(np.linalg.norm(observed - start_points[self._centre], axis=1)))
-        found = find_extremities(observed, centre)
+        # the ends need the surface's shape, not every observation: at the rest points'
+        # density a near subject's frame (2-3 times as dense) costs a third as much
+        sampled = voxel_centroids(observed, self.point_spacing)
+        centre = int(np.argmin(np.linalg.norm(sampled - start_points[self._centre], axis=1)))
+        found = find_extremities(sampled, centre)
         reach = np.full(len(model), self.params.truncation_sigmas * np.sqrt(self.params.initial_sigma2))
         if self._previous_points is not None:
             last_step = self.points - self._previous_points
