@@ -145,8 +145,9 @@ class NonRigidRegistration(GraphTerms, GraphMStep):
         as much again (a fast limb's start is further off; a lost one must not widen its own
         reach frame after frame). -> [(model region indices, observed end's centroid (3,) m)]."""
         model = self._extremities
-        # the ends need the surface's shape, not every observation: at the rest points'
-        # density a near subject's frame (2-3 times as dense) costs a third as much
+        # the ends need the surface's shape, not every observation, and their graph's cost
+        # grows with the points: a subject nearer the camera than in its rest frame is
+        # sampled more densely than the rest points
         sampled = voxel_centroids(observed, self.point_spacing)
         centre = int(np.argmin(np.linalg.norm(sampled - start_points[self._centre], axis=1)))
         found = find_extremities(sampled, centre)
