@@ -110,13 +110,14 @@ def test_inertia_keeps_a_real_runners_legs():
     """A real actor running (the 20 frames of the clip with the most limb motion). From the
     last registered pose EM follows a swinging leg only as far as the observations pull it
     each frame, and the leg falls behind; carried on by three quarters of the step its
-    last two steps agree on (`inertia` 0.75, the default) it stays nearer. Measured (mean
-    material error over every point and frame): 14.4 cm from the last pose, 8.1 cm
-    carried on."""
+    last two steps agree on (`inertia` 0.75, the default) it stays nearer. The limbs' ends as
+    landmarks are off: they pull a leg's end on too, and the test is of the start alone.
+    Measured (mean material error over every point and frame): 14.4 cm from the last pose,
+    8.1 cm carried on."""
     sequence = simulate_mocap(RUN_CLIP, frames=20, progress=False)
     errors = {}
     for inertia in (0.0, 0.75):
-        registered, gt, _ = _register(sequence, inertia=inertia)
+        registered, gt, _ = _register(sequence, inertia=inertia, extremity_weight=0.0)
         errors[inertia] = evaluate_registration(registered, np.asarray(gt.stamps), gt)['mean_error_m']
     assert errors[0.75] < 0.75 * errors[0.0], errors
 
