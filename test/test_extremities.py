@@ -19,6 +19,17 @@ BODY = [((0.0, 0.0, 0.0), (0.0, 0.0, 0.5), 0.14),
 ENDS = np.array([[0.0, 0.0, 0.87], [0.8, 0.0, 0.45], [-0.8, 0.0, 0.45], [0.1, 0.0, -0.92], [-0.1, 0.0, -0.92]])
 
 
+def _depth_inside(points, capsules):
+    """(N,) m: how far each point (N, 3) lies inside the union of capsules (negative: outside),
+    the largest of each capsule's radius minus the point's distance to its axis segment."""
+    starts = np.array([c[0] for c in capsules], float)
+    ends = np.array([c[1] for c in capsules], float)
+    radii = np.array([c[2] for c in capsules])
+    along = ends - starts
+    t = np.clip(np.einsum('pcj,cj->pc', points[:, None] - starts, along) / np.sum(along ** 2, axis=1), 0.0, 1.0)
+    return (radii - np.linalg.norm(points[:, None] - (starts + t[..., None] * along), axis=2)).max(axis=1)
+
+
 def _solid(capsules, spacing=0.02, jitter=0.0, seed=0):
     """Points (N, 3) on a grid of `spacing` m inside the union of capsules, jittered."""
     starts = np.array([c[0] for c in capsules], float)
@@ -28,11 +39,7 @@ def _solid(capsules, spacing=0.02, jitter=0.0, seed=0):
     high = np.maximum(starts, ends).max(axis=0) + radii.max()
     axes = [np.arange(lo, hi, spacing) for lo, hi in zip(low, high)]
     grid = np.stack(np.meshgrid(*axes, indexing='ij'), axis=-1).reshape(-1, 3)
-    along = ends - starts
-    t = np.clip(np.einsum('pcj,cj->pc', grid[:, None] - starts, along) / np.sum(along ** 2, axis=1), 0.0, 1.0)
-    nearest = starts + t[..., None] * along
-    inside = (np.linalg.norm(grid[:, None] - nearest, axis=2) <= radii).any(axis=1)
-    points = grid[inside]
+    points = grid[_depth_inside(grid, capsules) >= 0.0]
     return points + np.random.default_rng(seed).normal(0.0, jitter, points.shape)
 
 
@@ -40,14 +47,8 @@ def _shell(capsules, spacing):
     """The surface of the union of capsules as points (N, 3): the grid points of `spacing` m
     within one spacing inside it, about area / spacing^2 of them (a camera sees a surface,
     and its density is what the preprocessing sets)."""
-    starts = np.array([c[0] for c in capsules], float)
-    ends = np.array([c[1] for c in capsules], float)
-    radii = np.array([c[2] for c in capsules])
     points = _solid(capsules, spacing)
-    along = ends - starts
-    t = np.clip(np.einsum('pcj,cj->pc', points[:, None] - starts, along) / np.sum(along ** 2, axis=1), 0.0, 1.0)
-    depth = (radii - np.linalg.norm(points[:, None] - (starts + t[..., None] * along), axis=2)).max(axis=1)
-    return points[depth < spacing]
+    return points[_depth_inside(points, capsules) < spacing]
 
 
 def _extremities(points, scale=1.0):
