@@ -10,6 +10,7 @@ from skel_extract_ros.sim import generate_sequence
 
 
 def skeleton_json(path, stamps, positions, names=None):
+    """A skeleton.json of positions (F, J, 3): a chain, joint 0 its root."""
     names = names or [f'joint_{i}' for i in range(positions.shape[1])]
     doc = {'frame_id': 'camera_depth_optical_frame', 'joint_names': names,
            'parents': [-1] + list(range(len(names) - 1)),
@@ -150,7 +151,7 @@ def test_articulated_recall_counts_only_joints_that_bend(tmp_path, gt_pair):
     # predicting only the articulated joints: full articulated recall, partial recall
     spans = np.array([row['span_deg'] or 0.0 for row in report.per_joint])
     articulated = [g for g, row in enumerate(report.per_joint) if row['articulated']]
-    only = evaluate(tmp_path, gt, gt.joints[:, articulated])
+    only = evaluate(tmp_path, gt, gt.joints[:, [0] + articulated])   # a skeleton has a root
     assert only.articulated_recall == 1.0 and only.recall < 1.0
     # a joint held rigid is not counted: give one bone its parent's rotation in every frame
     import copy
@@ -391,11 +392,11 @@ def test_a_joint_within_the_threshold_is_not_given_up_for_a_cheaper_total(tmp_pa
     beyond = a + 0.40 * away
     d = lambda p, q: np.linalg.norm(p - q, axis=1).mean()
     assert d(near, b) + d(beyond, a) < d(near, a) + d(beyond, b), 'the bare assignment would swap them'
-    report = evaluate(tmp_path, gt, np.stack([near, beyond], axis=1))
+    report = evaluate(tmp_path, gt, np.stack([gt.joints[:, 0], near, beyond], axis=1))
     rows = {row['ground_truth']: row for row in report.per_joint}
-    assert rows['l_wrist']['found'] and rows['l_wrist']['predicted'] == 'joint_0'
+    assert rows['l_wrist']['found'] and rows['l_wrist']['predicted'] == 'joint_1'
     assert rows['l_wrist']['error_m'] == pytest.approx(0.08, abs=1e-6)
-    assert report.n_matched == 1 and not rows['r_ankle']['found']
+    assert report.n_matched == 2 and not rows['r_ankle']['found']
 
 
 def test_joints_at_parts_that_do_not_bend_lower_the_articulated_precision(tmp_path, gt_pair):
@@ -408,5 +409,27 @@ def test_joints_at_parts_that_do_not_bend_lower_the_articulated_precision(tmp_pa
     assert 0 < len(bending) < len(gt.joint_names)
     assert everything.precision == 1.0
     assert everything.articulated_precision == pytest.approx(len(bending) / len(gt.joint_names))
-    only = evaluate(tmp_path, gt, gt.joints[:, bending])
-    assert only.articulated_precision == 1.0 and only.articulated_recall == 1.0
+    # the root is no bend: it lowers the articulated precision of the bending joints alone
+    only = evaluate(tmp_path, gt, gt.joints[:, [0] + bending])
+    assert only.articulated_precision == pytest.approx(len(bending) / (len(bending) + 1))
+    assert only.articulated_recall == 1.0 and only.precision == 1.0
+
+
+def test_a_root_beside_a_joint_does_not_find_it(tmp_path, gt_pair):
+    """The method's root joint is its root bone's centre, not a place where the body bends:
+    placed 8 cm from a shoulder (and far from every true root), it matches nothing, and the
+    shoulder it lies beside stays unfound; the same point as a child joint finds it."""
+    gt = gt_pair[0]
+    shoulder = gt.joint_names.index('l_shoulder')
+    roots = np.flatnonzero(np.asarray(gt.joint_parents) < 0)
+    beside = gt.joints[:, shoulder] + np.array([0.0, 0.08, 0.0])
+    assert np.linalg.norm(beside[:, None] - gt.joints[:, roots], axis=-1).mean(axis=0).min() > 0.15
+    others = [g for g in range(len(gt.joint_names)) if g != shoulder]
+    as_root = evaluate(tmp_path, gt, np.concatenate([beside[:, None], gt.joints[:, others]], axis=1))
+    rows = {row['ground_truth']: row for row in as_root.per_joint}
+    assert not rows['l_shoulder']['found'] and as_root.n_matched == len(others)
+    assert as_root.precision == pytest.approx(len(others) / (len(others) + 1))
+    as_child = evaluate(tmp_path, gt, np.concatenate([gt.joints[:, others[:1]], beside[:, None],
+                                                       gt.joints[:, others[1:]]], axis=1))
+    rows = {row['ground_truth']: row for row in as_child.per_joint}
+    assert rows['l_shoulder']['found'] and as_child.n_matched == len(others) + 1

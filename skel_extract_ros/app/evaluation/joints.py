@@ -149,7 +149,8 @@ def evaluate_joints(pred: PredictedSkeleton, gt: GroundTruth, threshold_m: float
     Every scored frame is answered by the predicted frame with its stamp or it is a miss:
     a frame with no prediction, a repeated stamp and a non-finite joint cost `miss_cost`
     (the subject's size, at least MISS_PENALTY_FACTOR thresholds: more than any answer on
-    the body, so leaving a bad frame out never pays).
+    the body, so leaving a bad frame out never pays). A predicted root (parent -1) pairs
+    only with a true root: it is the root bone's centre, not a joint where the body bends.
 
     mean_error_m: mean over matched joints of the mean distance over the W frames (m);
     normalized_error_m: the same after removing each matched joint's mean offset (finite
@@ -208,6 +209,11 @@ def evaluate_joints(pred: PredictedSkeleton, gt: GroundTruth, threshold_m: float
     distances = np.linalg.norm(predicted[:, :, None, :] - truth[:, None, :, :], axis=-1)
     distances = np.where(finite[:, :, None], distances, miss_cost)
     cost = distances.mean(axis=0)                                          # (J, G)
+    # a predicted root is the root bone's centre, not a place where two bones turn: it answers
+    # the true root only (else it "finds" a hip or a shoulder it happens to lie near)
+    predicted_root = np.asarray(pred.parents, dtype=int) < 0
+    true_root = np.asarray(gt.joint_parents, dtype=int) < 0
+    cost[predicted_root[:, None] & ~true_root[None, :]] = np.inf
     # the most pairs within the threshold, then the nearest (the bare assignment can pair a
     # joint 8 cm from the wrist with a joint 40 cm away, and drop both)
     rows, cols = gated_assignment(cost, threshold)
@@ -239,7 +245,7 @@ def evaluate_joints(pred: PredictedSkeleton, gt: GroundTruth, threshold_m: float
     # each true joint's nearest predicted joint (mean distance, misses costed): for a joint not
     # found, whether the skeleton lacks a joint there (its nearest answers another true joint)
     # or has one too far off
-    nearest = cost.argmin(axis=0) if n_pred else np.full(n_gt, -1)
+    nearest = np.where(np.isfinite(cost).any(axis=0), cost.argmin(axis=0), -1) if n_pred else np.full(n_gt, -1)
     answers = np.full(n_pred, -1)
     answers[rows] = cols
     for g in range(n_gt):   # loop over true joints, not points
