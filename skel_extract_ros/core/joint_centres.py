@@ -185,14 +185,20 @@ def medial_anchors(labels, parents, rest, anchors, camera_location, min_section_
     (first principal direction) around the anchor: 10 % of the bone's length, at least
     `min_section_points` points. One camera samples only its front half: across the bone
     (perpendicular to the axis and the ray) the section spans [middle - a, middle + a]
-    (2nd-98th percentile), and an elliptic section with its depth axis along the ray gives
-    depth(s, u) = centre + g u - b sqrt(1 - (s - middle)^2 / a^2) for every visible point, u
-    its offset along the axis from the anchor; centre, slope g and half-depth b come from
-    one linear least-squares fit, so a flat section (a torso) is not taken for a round one,
-    and a bone turned towards or away from the camera, whose section lies on one side of the
-    anchor at its end, does not shift the centre by its slope. Anchors only move away from
-    the camera and by at most a. Bones seen end-on (axis along the ray) and sections not
-    clearly in front of the camera keep their anchor.
+    (2nd-98th percentile), and a round limb of radius a whose axis turns out of the image
+    plane by phi gives depth(s, u) = centre + g u - (a / cos phi) sqrt(1 - (s - middle)^2 /
+    a^2) for every visible point, u its offset along the axis from the anchor; centre and
+    slope g come from one linear least-squares fit, so a bone turned towards or away from
+    the camera, whose section lies on one side of the anchor at its end, does not shift the
+    centre by its slope. Anchors only move away from the camera and by at most a / cos phi.
+    Bones seen end-on (axis along the ray) and sections not clearly in front of the camera
+    keep their anchor.
+
+    Why round, its radius the visible half-width a rather than a fitted depth: the profile's
+    curvature lies at the section's grazing edges, which the camera samples worst and the
+    rest pose's trimmed surface loses, so a fitted depth comes out too flat on real limbs
+    and trunks, and the joints sat in front of the body. A truly flat section (a board) is
+    placed up to a too deep.
     """
     camera = np.asarray(camera_location, dtype=np.float64)
     result = anchors.copy()
@@ -206,9 +212,10 @@ def medial_anchors(labels, parents, rest, anchors, camera_location, min_section_
         ray /= max(np.linalg.norm(ray), 1e-12)
         axis = np.linalg.svd(points - points.mean(axis=0), full_matrices=False)[2][0]
         axis = axis - ray * (axis @ ray)
-        if np.linalg.norm(axis) < 0.3:   # bone points at the camera: its section is not seen
+        in_view = np.linalg.norm(axis)   # cosine of the bone's turn out of the image plane
+        if in_view < 0.3:                # bone points at the camera: its section is not seen
             continue
-        axis /= np.linalg.norm(axis)
+        axis /= in_view
         lateral = np.cross(ray, axis)
         along = np.abs((points - anchor) @ axis)
         kth = min(len(along), min_section_points) - 1
@@ -223,13 +230,15 @@ def medial_anchors(labels, parents, rest, anchors, camera_location, min_section_
         # model does not hold
         if half_width <= 0 or len(section) < 5 or depth.min() <= half_width:
             continue
-        # depth = centre_depth + slope * along_axis - half_depth * sqrt(1 - (across - middle)^2
-        # / half_width^2): linear in (centre_depth, slope, half_depth), exact for a round or
-        # elliptic section
+        # a round limb turned out of the image plane is cut by the ray's plane in an ellipse
+        # of half-depth half_width / in_view: depth + half_depth * sqrt(1 - (across -
+        # middle)^2 / half_width^2) = centre_depth + slope * along_axis, linear in
+        # (centre_depth, slope)
+        half_depth = half_width / in_view
         profile = np.sqrt(np.clip(1.0 - ((across - middle) / half_width) ** 2, 0.0, 1.0))
-        design = np.column_stack([np.ones_like(profile), (section - anchor) @ axis, -profile])
-        centre_depth = float(np.linalg.lstsq(design, depth, rcond=None)[0][0])
-        shift = np.clip(centre_depth - (anchor - camera) @ ray, 0.0, half_width)
+        design = np.column_stack([np.ones_like(profile), (section - anchor) @ axis])
+        centre_depth = float(np.linalg.lstsq(design, depth + half_depth * profile, rcond=None)[0][0])
+        shift = np.clip(centre_depth - (anchor - camera) @ ray, 0.0, half_depth)
         result[bone] = anchor + shift * ray
         rays[bone] = ray
     return result, rays
