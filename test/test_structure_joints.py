@@ -237,6 +237,17 @@ def test_medial_anchor_moves_the_surface_centroid_to_the_bone_axis(half_width, h
     assert np.linalg.norm(anchor - axis_point) < np.linalg.norm(centroid[0] - axis_point)
 
 
+def test_medial_anchor_takes_a_flat_section_for_a_round_one():
+    # the documented cost of the round section: a flat one (15 cm across, 8 deep) is placed
+    # behind its axis, never by more than its half-width, and only along the ray
+    points = _visible_section(0.15, 0.08)
+    labels = np.zeros(len(points), dtype=int)
+    centroid = points.mean(axis=0, keepdims=True)
+    anchor = medial_anchors(labels, np.array([-1]), points, centroid, (0.0, 0.0, 0.0))[0][0]
+    assert 1.5 < anchor[2] < 1.5 + 0.15
+    assert np.linalg.norm(anchor[:2] - centroid[0, :2]) < 1e-3
+
+
 @pytest.mark.parametrize('radius', [0.03, 0.05, 0.08])
 def test_medial_anchor_of_a_limb_whose_grazing_edges_are_lost(radius):
     # the rest surface keeps a limb's front only to about 60 degrees from the ray: the arc
