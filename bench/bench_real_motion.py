@@ -2,7 +2,7 @@
 end to end, scored against the ground truth.
 
     python bench/bench_real_motion.py [--frames 90] [--scenes empty,room] [--only wave,cow]
-                                      [--work DIR] [--score-only] [--json FILE]
+                                      [--work DIR] [--score-only | --relearn] [--json FILE]
                                       [--seeds 0,1,2] [--forms cloud,depth]
                                       [--params FILE] [--baseline FILE]
 
@@ -27,7 +27,12 @@ pivot the motion fixed (skeleton.json's `pivot`) against the others, and how man
 matched a true joint.
 
 `--work DIR` keeps the bags and run outputs (default: a temporary directory); with
-`--score-only` nothing is simulated or run again, the outputs in DIR are scored.
+`--score-only` nothing is simulated or run again, the outputs in DIR are scored. With
+`--relearn` only Steps 2 and 3 run, with `--params`, on each bag's registration kept in
+DIR/registrations (registered in this process with the defaults the first time, the bag
+simulated if absent): the scores of `run` with those parameters (the same files, to the
+digit) in a few seconds a bag, for a Step 2-3 variant; the registration's parameters in
+`--params` do not apply, and the kept registrations must be deleted after Steps 0-1 change.
 `--baseline FILE` (another run's `--json` rows, e.g. the defaults before a `--params`
 variant) adds the change of each half's means, per seed and input form, and on how many
 rows each figure rose and fell.
@@ -88,6 +93,15 @@ def subjects(only: list) -> list:
     return found
 
 
+def simulate(name: str, source_args: list, scene: str, frames: int, bag: Path) -> None:
+    """Render the subject into the bag directory `bag` (`skel-extract simulate`)."""
+    shutil.rmtree(bag, ignore_errors=True)
+    done = subprocess.run([CLI, 'simulate', *source_args, '--frames', str(frames), '--scene', scene,
+                           '--out', str(bag)], capture_output=True, text=True)
+    if done.returncode != 0:
+        raise RuntimeError(f'simulate {name}: {done.stderr.strip().splitlines()[-1]}')
+
+
 def simulate_and_run(name: str, source_args: list, scene: str, frames: int, work: Path,
                      variant: str | None = None, params: str | None = None) -> dict:
     """Simulate the subject into a bag and `skel-extract run` it (with the parameter file
@@ -95,17 +109,82 @@ def simulate_and_run(name: str, source_args: list, scene: str, frames: int, work
     source_args hold a seed or an input form."""
     variant = variant or scene
     bag, out = work / f'{name}_{variant}', work / f'{name}_{variant}_out'
-    shutil.rmtree(bag, ignore_errors=True)
     shutil.rmtree(out, ignore_errors=True)
-    done = subprocess.run([CLI, 'simulate', *source_args, '--frames', str(frames), '--scene', scene,
-                           '--out', str(bag)], capture_output=True, text=True)
-    if done.returncode != 0:
-        raise RuntimeError(f'simulate {name}: {done.stderr.strip().splitlines()[-1]}')
+    simulate(name, source_args, scene, frames, bag)
     started = time.perf_counter()
     done = subprocess.run([CLI, 'run', str(bag), '--out', str(out)] + (['--params', params] if params else []),
                           capture_output=True, text=True)
     record = {'wall_s': time.perf_counter() - started, 'returncode': done.returncode,
               'stdout': done.stdout, 'error': done.stderr.strip().splitlines()[-1] if done.returncode else ''}
+    (work / f'{name}_{variant}_run.json').write_text(json.dumps(record))
+    return record
+
+
+def relearn(name: str, source_args: list, scene: str, frames: int, work: Path, variant: str,
+            params: str | None = None) -> dict:
+    """Steps 2 and 3 alone (`--relearn`) with the parameter file `params`, on the bag's
+    registration kept in WORK/registrations/: the first time, the bag is simulated if absent
+    and registered in this process as `skel-extract run` registers it (the defaults), and
+    its registered.npz written. Writes the skeleton.json `run` would and a record as
+    simulate_and_run's (wall_s: Steps 2 and 3). A kept registration belongs to the code
+    that made it: empty that directory after changing Steps 0-1."""
+    import pickle
+
+    from skel_extract_ros.app.outputs import write_registered
+    from skel_extract_ros.codecs.bag import read_cloud_frames, select_cloud_topic
+    from skel_extract_ros.config import load_params_file, pipeline_params
+    from skel_extract_ros.core.pipeline import SkeletonPipeline
+    from skel_extract_ros.core.skeleton_model import pivot_document, skeleton_document
+    from skel_extract_ros.core.structure import StructureError
+
+    bag, out = work / f'{name}_{variant}', work / f'{name}_{variant}_out'
+    kept = work / 'registrations' / f'{name}_{variant}.pkl'
+    if not kept.is_file():
+        if not (bag / 'gt.npz').is_file():
+            simulate(name, source_args, scene, frames, bag)
+        pipeline = SkeletonPipeline()
+        clouds = list(read_cloud_frames(bag, select_cloud_topic(bag)))
+        registered = pipeline.register(f.points.reshape(f.height, f.width, 3) if f.height > 1 else f.points
+                                       for f in clouds)
+        kept.parent.mkdir(exist_ok=True)
+        with open(kept, 'wb') as file:
+            pickle.dump({'registration': pipeline.registration, 'registered': registered,
+                         'stamps': np.array([f.stamp for f in clouds]),
+                         'frame_id': clouds[0].frame_id if clouds else ''}, file)
+    with open(kept, 'rb') as file:
+        state = pickle.load(file)
+    registration, registered, stamps, frame_id = (state['registration'], state['registered'], state['stamps'],
+                                                  state['frame_id'])
+    shutil.rmtree(out, ignore_errors=True)
+    out.mkdir(parents=True)
+    record = {'returncode': 1, 'error': 'no rest pose: the subject was never wholly in view', 'stdout': '',
+              'wall_s': 0.0}
+    if registration.rest_pose_ is None:
+        (work / f'{name}_{variant}_run.json').write_text(json.dumps(record))
+        return record
+    write_registered(out, registered, stamps, registration.statuses_, registration.rest_pose_.points, frame_id)
+    pipeline = SkeletonPipeline(**(pipeline_params(load_params_file(params)) if params else {}))
+    pipeline.registration = registration      # Steps 0-1 as kept; Steps 2-3 with `params`
+    started = time.perf_counter()
+    record.update(returncode=0, error='')
+    try:
+        result = pipeline.extract(registered)
+    except StructureError as error:
+        record.update(returncode=1, error=str(error))
+    else:
+        model, seconds = result.model, result.seconds
+        document = skeleton_document(model.joint_names, model.parents, model.rest_joints, stamps[result.frames],
+                                     result.joint_positions, frame_id, result.joint_confidence,
+                                     pivot_document(model.pivot))
+        (out / 'skeleton.json').write_text(json.dumps(document))
+        per_frame = 1000.0 * np.median(registration.times_.per_frame_registration)
+        # the line `run` prints, which score() reads the steps' times from
+        record['stdout'] = (f'time: segmentation {seconds["segmentation"]:.1f} s | preprocess '
+                            f'{seconds["preprocess"]:.1f} s | rest pose {seconds["rest_pose"]:.1f} s | registration '
+                            f'{seconds["registration"]:.1f} s (median {per_frame:.0f} ms/frame) | structure '
+                            f'{seconds["structure"]:.1f} s | joints {seconds["joints"]:.1f} s | total '
+                            f'{sum(seconds.values()):.1f} s')
+    record['wall_s'] = time.perf_counter() - started
     (work / f'{name}_{variant}_run.json').write_text(json.dumps(record))
     return record
 
@@ -402,6 +481,10 @@ def main() -> int:
     parser.add_argument('--only', default='', help='comma-separated name fragments (e.g. wave,cow)')
     parser.add_argument('--work', default=None, help='keep bags and outputs here')
     parser.add_argument('--score-only', action='store_true', help='score the outputs already in --work')
+    parser.add_argument('--relearn', action='store_true',
+                        help='Steps 2 and 3 alone with --params, on each bag\'s registration kept in '
+                             'WORK/registrations (made with the defaults the first time): a Step 2-3 variant in '
+                             'minutes; empty that directory after changing Steps 0-1')
     parser.add_argument('--json', default=None, help='write the rows as JSON')
     parser.add_argument('--seeds', default='0', help='comma-separated simulation noise seeds (stability)')
     parser.add_argument('--forms', default='cloud', help='input forms: cloud, depth (16UC1 depth images)')
@@ -425,8 +508,8 @@ def main() -> int:
                 extra = (['--seed', seed] if seed != '0' else []) + (['--depth-image'] if form == 'depth' else [])
                 if not args.score_only:
                     started = time.perf_counter()
-                    record = simulate_and_run(name, source_args + extra, scene, args.frames, work, variant,
-                                              args.params)
+                    run = relearn if args.relearn else simulate_and_run
+                    record = run(name, source_args + extra, scene, args.frames, work, variant, args.params)
                     print(f'{name} {variant}: run exit {record["returncode"]} in '
                           f'{time.perf_counter() - started:.0f} s {record["error"]}', file=sys.stderr, flush=True)
                 try:

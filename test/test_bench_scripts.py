@@ -4,9 +4,14 @@ bench/README.md; this catches a script the code moved under, as the growth windo
 did to bench_skeleton.py), the skeleton bench with a parameter file too; the real-motion
 bench's comparison of two runs adds up, and the realtime bench's extra parameters merge
 over its window's."""
+import json
+import os
 import subprocess
 import sys
 from pathlib import Path
+
+import pytest
+from conftest import SHARED_DATA
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -124,3 +129,34 @@ def test_bench_realtime_applies_extra_parameters_over_the_window():
     assert merged['joint_estimation_node'] == extra['joint_estimation_node']
     # the window's own parameters are not changed in place
     assert window['accumulator_node'] == {'window_size': 10}
+
+
+def test_bench_real_motion_relearns_steps_2_and_3_on_a_kept_registration(tmp_path):
+    """`--relearn` scores what `run` scores on the same bag, to the digit, and runs Steps 2
+    and 3 again with a parameter file on the registration it kept, unchanged."""
+    if not (SHARED_DATA / 'mocap').is_dir():
+        pytest.skip(f'no real motion data under {SHARED_DATA}')
+
+    def rows(*args) -> dict:
+        out = tmp_path / f'rows{len(list(tmp_path.glob("rows*")))}.json'
+        done = subprocess.run([sys.executable, str(REPO / 'bench' / 'bench_real_motion.py'), '--only',
+                               'wave-left-hand', '--scenes', 'empty', '--frames', '30', '--work',
+                               str(tmp_path / 'work'), '--json', str(out), *args],
+                              capture_output=True, text=True, timeout=600, env=os.environ | {'SKEL_SHARED_DATA':
+                                                                                           str(SHARED_DATA)})
+        assert done.returncode == 0, done.stderr[-3000:]
+        (row,) = json.loads(out.read_text())
+        return row
+
+    keys = ('n_predicted', 'articulated_recall', 'precision', 'tracking_skill', 'mean_error_m', 'reg_mean_m')
+    run = rows()
+    relearned = rows('--relearn')
+    assert {k: relearned[k] for k in keys} == {k: run[k] for k in keys}
+    kept = tmp_path / 'work' / 'registrations' / 'wave-left-hand_normal_empty.pkl'
+    made = kept.stat().st_mtime_ns
+    # every cut kept: no evidence and no turn asked of a joint
+    params = tmp_path / 'params.yaml'
+    params.write_text('accumulator_node:\n  ros__parameters:\n    motion_noise_factor: 0.0\n    min_turn_deg: 0.0\n')
+    every_cut = rows('--relearn', '--params', str(params))
+    assert every_cut['n_predicted'] > run['n_predicted']
+    assert every_cut['reg_mean_m'] == run['reg_mean_m'] and kept.stat().st_mtime_ns == made
