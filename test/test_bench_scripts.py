@@ -2,8 +2,8 @@
 built-in subject and a few frames (their numbers are the benchmarks' business, in
 bench/README.md; this catches a script the code moved under, as the growth window once
 did to bench_skeleton.py), the skeleton bench with a parameter file too; the real-motion
-bench's comparison of two runs adds up, and the realtime bench's extra parameters merge
-over its window's."""
+bench's comparison of two runs adds up and its Steps 2-3 alone score as `run` does, and the
+realtime bench's extra parameters merge over its window's."""
 import json
 import os
 import subprocess
@@ -137,13 +137,14 @@ def test_bench_real_motion_relearns_steps_2_and_3_on_a_kept_registration(tmp_pat
     if not (SHARED_DATA / 'mocap').is_dir():
         pytest.skip(f'no real motion data under {SHARED_DATA}')
 
+    env = os.environ | {'SKEL_SHARED_DATA': str(SHARED_DATA)}
+
     def rows(*args) -> dict:
         out = tmp_path / f'rows{len(list(tmp_path.glob("rows*")))}.json'
         done = subprocess.run([sys.executable, str(REPO / 'bench' / 'bench_real_motion.py'), '--only',
                                'wave-left-hand', '--scenes', 'empty', '--frames', '30', '--work',
                                str(tmp_path / 'work'), '--json', str(out), *args],
-                              capture_output=True, text=True, timeout=600, env=os.environ | {'SKEL_SHARED_DATA':
-                                                                                           str(SHARED_DATA)})
+                              capture_output=True, text=True, timeout=600, env=env)
         assert done.returncode == 0, done.stderr[-3000:]
         (row,) = json.loads(out.read_text())
         return row
