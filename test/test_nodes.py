@@ -2,6 +2,7 @@
 import json
 import os
 import signal
+import time
 
 import numpy as np
 import pytest
@@ -240,6 +241,31 @@ def test_registration_runs_nicer_once_the_first_window_is_learned_and_survives_i
     assert node.stages.registration_process.nice == base            # learning the new one first
     assert not node.stages.registration_process.in_idle_class
     assert ros.spinning()
+
+
+def test_registration_node_stops_at_once_while_its_child_gets_no_cpu(ros, arm):
+    """Stopping the node (Ctrl-C) while a frame waits on a registration child that gets no
+    CPU (stopped here, as a child in the idle class can be on a busy machine): the stages end
+    within seconds, the child is ended, and no new child or rest pose is started for it."""
+    node = small_registration(ros)
+    registered = ros.listen('registered_points', PointCloud2, STREAM_QOS)
+    pub = ros.publisher('points', PointCloud2, qos_profile_sensor_data)
+    ros.wait_matched(pub)
+    pub.publish(cloud(arm.clouds[0], arm.stamps_ns[0]))
+    ros.wait(lambda: len(registered) == 1, what='the first frame')
+    child = node.stages.registration_process.pid
+    os.kill(child, signal.SIGSTOP)
+    pub.publish(cloud(arm.clouds[1], arm.stamps_ns[1]))
+    ros.wait(lambda: node.stages.camera.processed == 2 and node.stages.registration.stats()['busy'],
+             what='the second cloud waiting on the stopped child')
+    time.sleep(0.5)
+    started = time.monotonic()
+    node.stop_work()
+    assert time.monotonic() - started < 5.0
+    with pytest.raises(ChildProcessError):      # ended and reaped
+        os.waitpid(child, os.WNOHANG)
+    assert node.stages.registration_process.pid == child
+    assert not any('registration process ended' in m for m in ros.warnings('registration_node'))
 
 
 def test_registration_node_registers_the_first_window_in_order_then_the_newest(ros, arm):

@@ -2,6 +2,7 @@
 priority that drops only when asked, and a new child after the old one died."""
 import os
 import signal
+import threading
 import time
 
 import numpy as np
@@ -81,6 +82,33 @@ def test_a_killed_child_is_reported_and_restart_gives_a_working_one(sequence, ch
         child.register_frame(frames[0])
     child.install(NonRigidRegistration(rest, RegistrationParams()))
     assert child.register_frame(frames[0]).status == 'ok'
+
+
+def test_close_ends_a_child_that_gets_no_cpu_and_the_call_waiting_on_it_fails(sequence, child):
+    """A child that gets no CPU (stopped here, as one in the idle class can be on a busy
+    machine) is killed once close's timeout has passed, and the call waiting on it raises
+    ChildProcessDied instead of waiting for ever."""
+    rest, frames = sequence
+    child.install(NonRigidRegistration(rest, RegistrationParams()))
+    os.kill(child.pid, signal.SIGSTOP)
+    outcome = []
+
+    def register():
+        try:
+            child.register_frame(frames[0])
+        except ChildProcessDied as error:
+            outcome.append(error)
+    caller = threading.Thread(target=register)
+    caller.start()
+    time.sleep(0.3)
+    assert caller.is_alive()                   # waiting on the stopped child
+    started = time.monotonic()
+    child.close(timeout=0.5)
+    caller.join(timeout=5.0)
+    assert time.monotonic() - started < 3.0
+    assert not caller.is_alive() and len(outcome) == 1
+    with pytest.raises(ChildProcessError):     # ended and reaped
+        os.waitpid(child.pid, os.WNOHANG)
 
 
 def test_the_child_loads_neither_rclpy_nor_open3d(sequence, child):

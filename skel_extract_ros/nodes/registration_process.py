@@ -73,7 +73,8 @@ class _Child:
                 pickle.dump((name, args), self._process.stdin, protocol=pickle.HIGHEST_PROTOCOL)
                 self._process.stdin.flush()
                 ok, value = pickle.load(self._process.stdout)
-            except (EOFError, OSError, pickle.UnpicklingError) as error:
+            except (EOFError, OSError, ValueError, pickle.UnpicklingError) as error:
+                # ValueError: its stdin was closed (`close`) while this call waited for the lock
                 raise ChildProcessDied(f'the child process {self.pid} ended (exit code '
                                        f'{self._process.poll()})') from error
         if not ok:
@@ -81,13 +82,21 @@ class _Child:
         return value
 
     def close(self, timeout: float = 10.0, background: bool = False) -> None:
-        """Close its stdin (it ends after the call in progress) and reap it: here, or with
-        `background` in a daemon thread, for a caller that need not wait for the child's
-        interpreter to end."""
-        try:
-            self._process.stdin.close()
-        except OSError:
-            pass
+        """Close its stdin once the call in progress is answered (it then ends) and reap it,
+        killing it after `timeout` s of either wait: here, or with `background` in a daemon
+        thread, for a caller that need not wait for the child's interpreter to end."""
+        # a call in progress may be blocked writing to, or reading from, a child that gets no
+        # CPU; closing stdin then would wait on that call: the child is killed instead, which
+        # ends the call (ChildProcessDied)
+        if self._lock.acquire(timeout=max(timeout, 0.0)):
+            try:
+                self._process.stdin.close()
+            except OSError:
+                pass
+            finally:
+                self._lock.release()
+        else:
+            self._process.kill()
         if background:
             _reaper().submit((self, timeout))
         else:
@@ -183,8 +192,10 @@ class RegistrationProcess:
         self._child.close(timeout=0.0)
         self._start()
 
-    def close(self) -> None:
-        self._child.close()
+    def close(self, timeout: float = 10.0) -> None:
+        """End the child: after the call in progress, or killed once `timeout` s have passed
+        (a call waiting on it then raises ChildProcessDied)."""
+        self._child.close(timeout)
 
 
 class RestPoseProcess:
@@ -238,9 +249,10 @@ class RestPoseProcess:
         self._child = None
         return rest_pose
 
-    def close(self) -> None:
+    def close(self, timeout: float = 10.0) -> None:
+        """End the child, if there is one, as RegistrationProcess.close."""
         if self._child is not None:
-            self._child.close()
+            self._child.close(timeout)
             self._child = None
 
 

@@ -33,6 +33,9 @@ from .registration_process import (REST_POSE_IDLE_RELEASE_S, ChildProcessDied, R
 from .worker import Worker
 
 
+# At the node's stop, how long (s) a child may take to end by itself before it is killed.
+CHILD_EXIT_WAIT_S = 1.0
+
 # No cloud received and none in either stage for this long while frames are held for the
 # rest pose's choice: the stream ended or paused, and the choice is made from the frames
 # held. Ten frame intervals of the slowest usual depth camera (15 Hz), so a live camera
@@ -69,6 +72,7 @@ class RegistrationStages:
         (self.params, self.rest_params, self.preprocess_params, self.segmentation_params) = method
         self.settings, self.decode, self.publish = settings, decode, publish
         self.log, self.logger, self.context_ok = log, logger, context_ok
+        self._stopping = False      # stop() began: a child's end is no failure
         # a skeleton is described: subject frames feed the live fit too (not only registration)
         self.described = False
         # the joint node's newest posed model (stamp ns, (M, 3)): where the next frame's
@@ -153,12 +157,19 @@ class RegistrationStages:
                                  f'{registration["dropped"]} skipped for registration ({policy}')
 
     def stop(self) -> None:
-        """Stop both stages and the child processes."""
-        # the registration stage first: a lossless camera stage blocked on it wakes at once
+        """Stop both stages and the child processes, the children at once: the node is
+        ending and their work in progress is of no use. Once the skeleton is tracked the
+        registration child runs in the idle scheduling class, where on a busy machine it may
+        get no CPU for seconds, neither to finish its frame nor to see its stdin close;
+        waited for, it kept the node alive past the 20 s a Ctrl-C is given."""
+        self._stopping = True
+        # the registration stage first: a lossless camera stage blocked on it wakes at once;
+        # not joined yet: its frame in progress may be waiting on a child
+        self.registration.stop(timeout=0.0)
+        self.registration_process.close(timeout=CHILD_EXIT_WAIT_S)
+        self.rest_pose_process.close(timeout=CHILD_EXIT_WAIT_S)
         self.registration.stop()
         self.camera.stop()
-        self.registration_process.close()
-        self.rest_pose_process.close()
 
     # -- camera stage ----------------------------------------------------------------------
     def _learn(self) -> None:
@@ -309,7 +320,7 @@ class RegistrationStages:
         try:
             return registrar_call()
         except ChildProcessDied:
-            if self.context_ok():
+            if self.context_ok() and not self._stopping:
                 self.log.always('the registration process ended unexpectedly (out of memory? killed?): '
                                 'starting a new one and a new rest pose')
                 self.registration_process.restart()
