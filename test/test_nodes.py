@@ -258,7 +258,7 @@ def test_registration_node_stops_at_once_while_its_child_gets_no_cpu(ros, arm):
     pub.publish(cloud(arm.clouds[1], arm.stamps_ns[1]))
     ros.wait(lambda: node.stages.camera.processed == 2 and node.stages.registration.stats()['busy'],
              what='the second cloud waiting on the stopped child')
-    time.sleep(0.5)
+    time.sleep(0.5)     # the stage marks itself busy just before it writes to the child
     started = time.monotonic()
     node.stop_work()
     assert time.monotonic() - started < 5.0
