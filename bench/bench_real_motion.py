@@ -130,6 +130,7 @@ def relearn(name: str, source_args: list, scene: str, frames: int, work: Path, v
     that made it: empty that directory after changing Steps 0-1."""
     import pickle
 
+    from skel_extract_ros.app.cli import step_times_line
     from skel_extract_ros.app.outputs import write_registered
     from skel_extract_ros.codecs.bag import read_cloud_frames, select_cloud_topic
     from skel_extract_ros.config import load_params_file, pipeline_params
@@ -177,13 +178,9 @@ def relearn(name: str, source_args: list, scene: str, frames: int, work: Path, v
                                      result.joint_positions, frame_id, result.joint_confidence,
                                      pivot_document(model.pivot))
         (out / 'skeleton.json').write_text(json.dumps(document))
-        per_frame = 1000.0 * np.median(registration.times_.per_frame_registration)
+        per_frame = 1000.0 * float(np.median(registration.times_.per_frame_registration))
         # the line `run` prints, which score() reads the steps' times from
-        record['stdout'] = (f'time: segmentation {seconds["segmentation"]:.1f} s | preprocess '
-                            f'{seconds["preprocess"]:.1f} s | rest pose {seconds["rest_pose"]:.1f} s | registration '
-                            f'{seconds["registration"]:.1f} s (median {per_frame:.0f} ms/frame) | structure '
-                            f'{seconds["structure"]:.1f} s | joints {seconds["joints"]:.1f} s | total '
-                            f'{sum(seconds.values()):.1f} s')
+        record['stdout'] = step_times_line(seconds, per_frame, sum(seconds.values()))
     record['wall_s'] = time.perf_counter() - started
     (work / f'{name}_{variant}_run.json').write_text(json.dumps(record))
     return record

@@ -205,12 +205,18 @@ def _cmd_run(args) -> int:
     pivots = '' if model.pivot is None else f' ({int(model.pivot.fixed.sum())} pivots fixed by the motion)'
     print(f'skeleton: {result.model.n_joints} joints{pivots}, {result.structure.n_bones} bones '
           f'-> {out / "skeleton.json"}, {out / "skeleton.bvh"}, {out / "skeleton.png"}')
-    print(f'time: segmentation {seconds["segmentation"]:.1f} s | '
-          f'preprocess {seconds["preprocess"]:.1f} s | rest pose {seconds["rest_pose"]:.1f} s | '
-          f'registration {seconds["registration"]:.1f} s (median {np.median(per_frame):.0f} ms/frame) | '
-          f'structure {seconds["structure"]:.1f} s | joints {seconds["joints"]:.1f} s | total {total:.1f} s')
+    print(step_times_line(seconds, float(np.median(per_frame)), total))
     _score_if_simulated(Path(args.input), out)
     return 0
+
+
+def step_times_line(seconds: dict, per_frame_ms: float, total_s: float) -> str:
+    """The `time:` line `run` prints (and bench/bench_real_motion.py reads): each step's
+    seconds, the registration's median ms per frame, the total (s)."""
+    return (f'time: segmentation {seconds["segmentation"]:.1f} s | '
+            f'preprocess {seconds["preprocess"]:.1f} s | rest pose {seconds["rest_pose"]:.1f} s | '
+            f'registration {seconds["registration"]:.1f} s (median {per_frame_ms:.0f} ms/frame) | '
+            f'structure {seconds["structure"]:.1f} s | joints {seconds["joints"]:.1f} s | total {total_s:.1f} s')
 
 
 def _score_if_simulated(bag: Path, out: Path) -> None:
