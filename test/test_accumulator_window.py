@@ -214,7 +214,8 @@ def test_joint_node_follows_a_growing_structure_with_old_key_frames_and_stable_n
     ros.wait(lambda: len(descriptions) == 2, what='the grown description')
     second = json.loads(descriptions[1].data)
     assert [(s - T0) // DT for s in second['window_stamps_ns']] == key
-    assert second['joint_names'] == ['joint_5', 'joint_9'] and second['changes'] == {'moved': ['joint_9']}
+    assert second['joint_names'] == ['joint_5', 'joint_9'] and second['changes'] == {
+        'added': [], 'removed': [], 'reparented': [], 'moved': ['joint_9']}
     assert not any('not in the buffer' in line for line in ros.warnings('joint_estimation_node'))
     assert sorted(stamps_of(joints)) == [T0 + i * DT for i in range(16)]   # none twice
 

@@ -627,7 +627,9 @@ def test_joint_estimation_node_tracks_the_step2_skeleton_while_alg2_runs(ros, he
     _learn_frames_0_to_11_with_12_registered_after(ros, node, rest, registered)
     ros.wait(lambda: len(joints) == 13 and len(description) == 1, what='the provisional skeleton')
     provisional = json.loads(description[0].data)
-    assert provisional['provisional'] is True and provisional['changes'] == {}
+    # the first description: every joint is new
+    assert provisional['provisional'] is True and provisional['changes'] == {
+        'added': provisional['joint_names'], 'removed': [], 'reparented': [], 'moved': []}
     assert node.stages.estimating and 'tracking 2 joints meanwhile' in node._diagnostics()[1]
     child = provisional['parents'].index(0)
     # Step 2's joint (the joint solve on the segments' rigid motion) on the window frames
@@ -648,7 +650,7 @@ def test_joint_estimation_node_tracks_the_step2_skeleton_while_alg2_runs(ros, he
     held_alg2.set()
     ros.wait(lambda: len(description) == 2 and not node.stages.estimating, what="Alg. 2's description")
     refined = json.loads(description[1].data)
-    assert refined['provisional'] is False and refined['changes'] == {}
+    assert refined['provisional'] is False and not any(refined['changes'].values())
     assert refined['joint_names'] == provisional['joint_names'] and refined['parents'] == provisional['parents']
     assert refined['window_stamps_ns'] == provisional['window_stamps_ns']
     assert len(joints) == 18                   # the window's frames are not published again
@@ -666,6 +668,41 @@ def test_joint_estimation_node_tracks_the_step2_skeleton_while_alg2_runs(ros, he
     cleared = [any(m.action == Marker.DELETEALL for m in array.markers) for array in markers]
     assert cleared == [True] + [False] * 17 + [True] + [False] * 5
     assert markers[18].markers[0].action == Marker.DELETEALL
+
+
+def test_a_description_lists_the_changes_since_the_previous_description_when_a_structure_was_skipped(
+        ros, held_alg2):
+    """Structures B and C come while Alg. 2 runs on A; C replaces B, which is never described.
+    C's description lists what changed since A's (its joint 1 removed, 8 added, 0 moved), not
+    what C's own changes list since B: a consumer that applies the changes of each
+    description to the names it has keeps the described names."""
+    rest, registered, _, _, _ = two_bone_sequence(n_frames=24)
+    node = ros.add(JointEstimationNode)
+    description = ros.listen('skeleton/description', String, LATCHED_QOS)
+    _learn_frames_0_to_11_with_12_registered_after(ros, node, rest, registered)       # A: joint_0, joint_1
+    ros.wait(lambda: len(description) == 1, what="A's provisional description")
+    structure = extract_structure(rest, registered[:12], StructureParams(n_clusters=12))
+    stamps = [T0 + i * DT for i in range(12)]
+    pub = ros.publisher('skeleton/structure', String, LATCHED_QOS)
+    ros.wait_matched(pub)
+    for ids, changes in (([0, 7], {'added': ['joint_7'], 'removed': ['joint_1'], 'moved': ['joint_0']}),
+                         ([0, 8], {'added': ['joint_8'], 'removed': ['joint_7']})):
+        submitted = node.stages.estimator.stats()['submitted']
+        pub.publish(String(data=json.dumps(structure_document(structure, T0, stamps, 'camera_depth_optical_frame',
+                                                              ids, changes))))
+        ros.wait(lambda: node.stages.estimator.stats()['submitted'] == submitted + 1,
+                 what=f'the structure with joint_{ids[1]} waiting')
+    assert node.stages.estimator.stats()['dropped'] == 1          # B replaced by C
+    held_alg2.set()
+    ros.wait(lambda: len(description) == 4 and not node.stages.estimating, what="A's and C's descriptions")
+    documents = [json.loads(m.data) for m in description]
+    assert [d['joint_names'] for d in documents] == [['joint_0', 'joint_1']] * 2 + [['joint_0', 'joint_8']] * 2
+    assert documents[2]['changes'] == {'added': ['joint_8'], 'removed': ['joint_1'], 'reparented': [],
+                                       'moved': ['joint_0']}
+    names = set()
+    for document in documents:
+        names = (names - set(document['changes']['removed'])) | set(document['changes']['added'])
+        assert names == set(document['joint_names'])
 
 
 MALFORMED = [

@@ -111,6 +111,24 @@ def parse_structure(text: str) -> dict:
         raise ValueError(f'malformed skeleton/structure message: {error}') from None
 
 
+def description_changes(before: SkeletonModel | None, after: SkeletonModel, moved=()) -> dict:
+    """What changed from the description of `before` (None: there was none) to that of
+    `after`: joint names added, removed, reparented (a different parent name) and moved
+    (names in `moved`, the structures' own moved joints since `before`, that both keep).
+    Taken from the two descriptions themselves, so the changes hold when structures were
+    skipped between them (one replaced while waiting for Alg. 2, one ignored)."""
+    def parent_names(model):
+        names = model.joint_names
+        return {name: (names[p] if p >= 0 else None) for name, p in zip(names, model.parents)}
+    old = {} if before is None else parent_names(before)
+    new, moved = parent_names(after), set(moved)
+    kept = [name for name in after.joint_names if name in old]
+    return {'added': [name for name in after.joint_names if name not in old],
+            'removed': [name for name in old if name not in new],
+            'reparented': [name for name in kept if old[name] != new[name]],
+            'moved': [name for name in kept if name in moved]}
+
+
 def description_document(model: SkeletonModel, frame_id: str, window_stamps_ns, changes: dict | None = None,
                          provisional: bool = False, version: int = 1, confidence=None) -> dict:
     """The skeleton/description JSON: version (a counter that changes with every new

@@ -46,9 +46,9 @@ class JointStages:
         self.described = None                # its DescribedSkeleton (names, version)
         self.camera_tracker = None           # its CameraTracker (live_frames camera)
         self.model_parents = None
-        self._provisional = False            # the tracked model is Step 2's, Alg. 2 still running
         self.last_published = None           # stamp of the newest frame with joints published
         self._early_structure = None
+        self._moved = []                     # (structure document, joint names it moved) not yet described
         # Alg. 2 runs for seconds beside the live fit of every camera frame: below it
         self.estimator = Worker(self._estimate, 'joints', capacity=1, on_error=self._estimation_failed,
                                 niceness=settings.estimation_niceness)
@@ -98,6 +98,7 @@ class JointStages:
             had_model = self.tracker is not None
             self.tracker, self.camera_tracker, self.last_published = None, None, None
             early, self._early_structure = self._early_structure, None
+            self._moved.clear()
         if had_model:
             self.logger.info('new rest pose: live joints pause until the next skeleton/structure')
         if early is not None:
@@ -164,6 +165,9 @@ class JointStages:
                 return
             frames = [available[s] for s in found]
             self.kept = dict(zip(found, frames))
+            # a structure Alg. 2 skips (a newer one replaces it while it waits) still moved
+            # its joints: the next structure's description lists them
+            self._moved.append((document, document['changes'].get('moved', [])))
             rest = self.rest
         if not self.estimator.idle:
             self.logger.info('joint estimation running: the new structure waits (a newer one replaces it)')
@@ -206,7 +210,6 @@ class JointStages:
         provisional: Step 2's model, which Alg. 2's will replace."""
         with self._lock:
             stale = self.rest is not model.rest_points
-            refining = self.tracker is not None and self._provisional
         if stale:
             # a new rest pose came while this window's model was learned: its frames are
             # another subject's (or the same one started over), and the next structure's
@@ -216,13 +219,17 @@ class JointStages:
             return
         tracker = LiveJointTracker(model, self.params, self.live_sweeps)
         camera = CameraTracker(ArticulatedTracker(model, self.params, iterations=self.live_iterations), tracker)
-        # the refinement of a provisional description lists no changes: same joints, same tree
-        changes = {} if refining and not provisional else document['changes']
         window = [(stamp, header, *self._registered_outputs(model, tracker, registered, rotations, translations))
                   for stamp, (header, registered, _), rotations, translations in zip(stamps, frames, *window_pose)]
         # the skeleton's confidence: each joint's median over the frames it was learned on
         confidence = np.median([frame[-1] for frame in window], axis=0)
-        described = self.output.describe(model, document['frame_id'], stamps, changes, provisional, confidence)
+        with self._lock:
+            # what this structure and those skipped before it moved (none when Alg. 2's model
+            # refines Step 2's: described with it)
+            through = next((k + 1 for k, (d, _) in enumerate(self._moved) if d is document), 0)
+            moved = {name for _, names in self._moved[:through] for name in names}
+            del self._moved[:through]
+        described = self.output.describe(model, document['frame_id'], stamps, moved, provisional, confidence)
         with self._lock:
             done = self.last_published
         # a frame that already has joints (live, from the previous model) is not published
@@ -241,7 +248,6 @@ class JointStages:
                         if (since is None or s > since) and s not in in_window]
             self.tracker, self.camera_tracker, self.model_parents = tracker, camera, model.parents
             self.described = described
-            self._provisional = provisional
             published = [stamps[-1]] + [s for s, _ in catch_up[-1:]]
             self.last_published = max(published + [self.last_published or published[0]])
         what = 'Step 2, provisional while Alg. 2 runs' if provisional else 'Alg. 2'

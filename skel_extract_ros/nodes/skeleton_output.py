@@ -36,7 +36,7 @@ from visualization_msgs.msg import MarkerArray
 from ..core.bone_rotations import bone_rotations, point_fit_rotations
 from ..core.skeleton_model import SkeletonModel
 from .common import LATCHED_QOS, STREAM_QOS
-from ..codecs.messages import description_document, pose_array, skeleton_markers, stamp_ns
+from ..codecs.messages import description_changes, description_document, pose_array, skeleton_markers, stamp_ns
 
 # consecutive frames further apart than this get no velocities (a gap in the data: a
 # finite difference over it is not a velocity)
@@ -91,18 +91,21 @@ class SkeletonOutput:
         self.markers_pub = node.create_publisher(MarkerArray, 'skeleton/markers', STREAM_QOS)
         self._lock = threading.Lock()
         self._version = 0
+        self._described = None            # the model of the last description
         self._markers_version = None      # the version the markers reader last got
         self.velocities = FrameVelocities()
 
-    def describe(self, model: SkeletonModel, frame_id: str, window_stamps_ns, changes: dict,
+    def describe(self, model: SkeletonModel, frame_id: str, window_stamps_ns, moved,
                  provisional: bool, confidence) -> DescribedSkeleton:
         """Publish the description of a new skeleton (the next version) and return it;
-        confidence (J,): the skeleton's per-joint confidence."""
+        moved: names the structures since the previous description moved; confidence (J,):
+        the skeleton's per-joint confidence. Its changes are from the previous description."""
         with self._lock:
             self._version += 1
+            before, self._described = self._described, model
             described = DescribedSkeleton(model, self._version)
-        document = description_document(model, frame_id, window_stamps_ns, changes, provisional, described.version,
-                                        confidence)
+        document = description_document(model, frame_id, window_stamps_ns, description_changes(before, model, moved),
+                                        provisional, described.version, confidence)
         self.description_pub.publish(String(data=json.dumps(document)))
         return described
 
