@@ -66,6 +66,26 @@ def test_sliding_windows_grow_one_skeleton_every_stride_frames(ros):
     assert len(key) == 12 and min(key) < T0 + 8 * DT and max(key) >= T0 + 14 * DT
 
 
+def test_a_new_rest_pose_starts_a_skeleton_whose_joint_names_were_never_used(ros):
+    """The subject starts over (a new rest pose): the new skeleton's joints get ids after the
+    old one's, so a consumer keying on names never takes a new joint for an old one."""
+    rest, left = three_part_chain(30, 'left')
+    _, right = three_part_chain(30, 'right', seed=1)
+    ros.add(AccumulatorNode, parameter_overrides=[Parameter('window_size', value=30), Parameter('n_clusters', value=20)])
+    structures = ros.listen('skeleton/structure', String, LATCHED_QOS)
+    publish_rest(ros, rest)
+    publish_frames(ros, left, 0)
+    ros.wait(lambda: len(structures) == 1, what='the first skeleton')
+    again = ros.publisher('rest_points', PointCloud2, LATCHED_QOS)
+    again.publish(cloud_message(rest, header(T0 + 40 * DT), float64=True))
+    publish_frames(ros, right, 41)
+    ros.wait(lambda: len(structures) == 2, what="the new rest pose's skeleton")
+    first, second = (json.loads(m.data) for m in structures)
+    assert second['rest_stamp_ns'] == T0 + 40 * DT
+    assert min(second['joint_ids']) > max(first['joint_ids'])
+    assert second['changes']['added'] == [f'joint_{i}' for i in sorted(second['joint_ids'])]
+
+
 def test_limbs_moving_in_different_windows_grow_one_structure_over_dds(ros):
     rest, left = three_part_chain(30, 'left')
     _, right = three_part_chain(30, 'right', seed=1)

@@ -66,6 +66,23 @@ def test_two_limbs_moving_in_different_windows_end_in_one_model_with_stable_ids(
     assert (growth.key_stamps < 40).any() and (growth.key_stamps >= 40).any()
 
 
+def test_a_skeleton_started_after_another_continues_its_ids():
+    """A new rest pose starts a new skeleton (the accumulator node's SkeletonGrowth with the
+    previous one's next_id): its joints get ids the first never used, in the structure, the
+    changes and the model, so no name means two joints."""
+    rest, first = three_part_chain(40, 'left')
+    _, second = three_part_chain(40, 'right', seed=1)
+    params = StructureParams(n_clusters=20, max_key_frames=40)
+    before = SkeletonGrowth(rest, params)
+    old = before.update(np.arange(40), first)
+    after = SkeletonGrowth(rest, params, first_id=before.next_id)
+    new = after.update(np.arange(40), second, [frame[::3] for frame in second])
+    assert before.next_id == max(old.joint_ids) + 1 and min(new.joint_ids) == before.next_id
+    assert set(new.joint_names).isdisjoint(old.joint_names)
+    assert set(new.changes['added']) == set(new.joint_names) and new.model.joint_names == new.joint_names
+    assert after.next_id == max(new.joint_ids) + 1
+
+
 def test_a_window_without_new_motion_changes_nothing():
     rest, first = three_part_chain(40, 'left')
     growth = SkeletonGrowth(rest, StructureParams(n_clusters=20, max_key_frames=40))

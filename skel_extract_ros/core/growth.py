@@ -18,7 +18,8 @@ centre). After each update the root joint keeps the root's id, and the other new
 are matched (rest frame, core.matching's gated assignment) to every joint the model has
 ever had, within `joint_match_fraction` of the subject size; a matched joint keeps its id,
 a new one gets the next id, and names are `joint_<id>`, so consumers keying on names see
-the same joint across updates. `GrowthUpdate.changes` says what changed: joints added,
+the same joint across updates. A skeleton started after another (a new rest pose) begins
+at the other's `next_id`, so a name is never given to two joints. `GrowthUpdate.changes` says what changed: joints added,
 removed, re-parented, or moved by more than the match radius over two.
 """
 from __future__ import annotations
@@ -133,8 +134,11 @@ class SkeletonGrowth:
     """
 
     def __init__(self, rest: np.ndarray, structure_params: StructureParams | None = None,
-                 joint_params: JointParams | None = None):
+                 joint_params: JointParams | None = None, first_id: int = 0):
         self.rest = np.asarray(rest, dtype=np.float64)
+        # ids start here: a node that starts a new skeleton (a new rest pose) gives it ids
+        # the previous one never used, so a name never means two joints to a consumer
+        self.first_id = int(first_id)
         self.structure_params = structure_params or StructureParams()
         self.joint_params = joint_params or JointParams()
         self.max_key_frames = self.structure_params.max_key_frames
@@ -208,11 +212,17 @@ class SkeletonGrowth:
             started = time.perf_counter()
             estimate = JointEstimation(self.joint_params).fit(self.rest, window, self.key_observed, structure)
             self.seconds_['joints'] = time.perf_counter() - started
-            model = estimate.model(self.rest, structure.labels, ids)
-        self.last = GrowthUpdate(structure, estimate, ids, self.key_stamps.copy(), changed, changes, model)
+            model = estimate.model(self.rest, structure.labels, ids + self.first_id)
+        self.last = GrowthUpdate(structure, estimate, ids + self.first_id, self.key_stamps.copy(), changed, changes,
+                                 model)
         return self.last
 
     # ------------------------------------------------------------------------------------
+    @property
+    def next_id(self) -> int:
+        """The first id this skeleton has not used (a next skeleton's first_id)."""
+        return self.first_id + len(self.known_positions)
+
     def _current_positions(self):
         return [self.known_positions[i] for i in self.ids]
 
@@ -259,5 +269,7 @@ class SkeletonGrowth:
                     reparented.append(joint_id)
                 if np.linalg.norm(position - old_position) > 0.5 * self.match_radius:
                     moved.append(joint_id)
-        return {'added': joint_names(added), 'removed': joint_names(removed),
-                'reparented': joint_names(reparented), 'moved': joint_names(moved)}
+        def names(internal):
+            return joint_names(np.asarray(internal, dtype=int) + self.first_id)
+        return {'added': names(added), 'removed': names(removed), 'reparented': names(reparented),
+                'moved': names(moved)}

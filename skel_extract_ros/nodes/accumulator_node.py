@@ -86,7 +86,8 @@ class AccumulatorNode(WorkingNode):
             for stamp in old:
                 del self.frames[stamp]
             self.rest, self.rest_stamp, self.frame_id = rest, rest_stamp, msg.header.frame_id
-            self.growth = SkeletonGrowth(rest, self.params)
+            # the new skeleton's joint ids follow the old one's: a name is one joint for good
+            self.growth = SkeletonGrowth(rest, self.params, first_id=0 if self.growth is None else self.growth.next_id)
             self._since_extraction = len(self.frames)
             self._extracted_once = False
         self.get_logger().info(f'new rest pose ({len(rest)} points); window and skeleton restarted'
