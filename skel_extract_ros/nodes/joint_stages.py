@@ -24,6 +24,9 @@ from .common import StampPairer, release_freed_memory
 from .skeleton_output import registered_hints
 from .worker import RateMeter, Worker
 
+# structures whose moved joints wait for a description, at most (Alg. 2 failing on each)
+MAX_UNDESCRIBED = 32
+
 
 class JointStages:
     """params: JointParams; settings: the node's own parameters (JointNodeParams); output:
@@ -48,7 +51,8 @@ class JointStages:
         self.model_parents = None
         self.last_published = None           # stamp of the newest frame with joints published
         self._early_structure = None
-        self._moved = []                     # (structure document, joint names it moved) not yet described
+        self._moved = []                     # (structure number, joint names it moved), not yet described
+        self._structures = 0                 # structures accepted so far: each job's number
         # Alg. 2 runs for seconds beside the live fit of every camera frame: below it
         self.estimator = Worker(self._estimate, 'joints', capacity=1, on_error=self._estimation_failed,
                                 niceness=settings.estimation_niceness)
@@ -167,18 +171,25 @@ class JointStages:
             self.kept = dict(zip(found, frames))
             # a structure Alg. 2 skips (a newer one replaces it while it waits) still moved
             # its joints: the next structure's description lists them
-            self._moved.append((document, document['changes'].get('moved', [])))
+            self._structures += 1
+            sequence = self._structures
+            self._moved.append((sequence, document['changes'].get('moved', [])))
+            if len(self._moved) > MAX_UNDESCRIBED:
+                # Alg. 2 failing structure after structure: the oldest two become one entry
+                # (their names go with the newer one's description), so this stays bounded
+                (_, older), (number, newer) = self._moved[:2]
+                self._moved[:2] = [(number, older + newer)]
             rest = self.rest
         if not self.estimator.idle:
             self.logger.info('joint estimation running: the new structure waits (a newer one replaces it)')
-        self.estimator.submit((document, rest, found, frames))
+        self.estimator.submit((document, rest, found, frames, sequence))
 
     def _estimation_failed(self, _job, error) -> None:
         self.logger.error(f'joint estimation failed: {type(error).__name__}: {error} '
                                 '(serving the previous model)')
 
     def _estimate(self, job) -> None:
-        document, rest, stamps, frames = job
+        document, rest, stamps, frames, sequence = job
         started = time.perf_counter()
         registered = np.stack([f[1] for f in frames]).astype(np.float64)
         observed = [f[2] for f in frames]
@@ -196,18 +207,21 @@ class JointStages:
             # registered: lossless replay publishes Alg. 2's joints for the window, as run does.
             step2 = SkeletonModel(rest, labels, parents, structure.joints, labels[:, None],
                                   np.ones((len(rest), 1)), document['joint_ids'], structure.pivot_evidence())
-            self._serve(step2, document, stamps, frames, (rotations, translations), started, provisional=True)
+            self._serve(step2, document, sequence, stamps, frames, (rotations, translations), started,
+                        provisional=True)
         estimate = JointEstimation(self.params).fit(rest, registered, observed, structure)
         model = estimate.model(rest, labels, document['joint_ids'])
-        self._serve(model, document, stamps, frames, (estimate.rotations, estimate.translations), started)
+        self._serve(model, document, sequence, stamps, frames, (estimate.rotations, estimate.translations), started)
         release_freed_memory()
 
-    def _serve(self, model: SkeletonModel, document: dict, stamps: list, frames: list,
+    def _serve(self, model: SkeletonModel, document: dict, sequence: int, stamps: list, frames: list,
                window_pose: tuple, started: float, provisional: bool = False) -> None:
         """Publish model's description, the joints of the window frames that have none yet
         (window_pose: the model's bone rotations (F, B, 3, 3) and translations (F, B, 3) at
         them), then track it live (on the registered frames without joints first).
-        provisional: Step 2's model, which Alg. 2's will replace."""
+        sequence: the structure's number (its description lists the joints it and the
+        structures skipped before it moved); provisional: Step 2's model, which Alg. 2's
+        will replace."""
         with self._lock:
             stale = self.rest is not model.rest_points
         if stale:
@@ -226,7 +240,7 @@ class JointStages:
         with self._lock:
             # what this structure and those skipped before it moved (none when Alg. 2's model
             # refines Step 2's: described with it)
-            through = next((k + 1 for k, (d, _) in enumerate(self._moved) if d is document), 0)
+            through = sum(1 for number, _ in self._moved if number <= sequence)
             moved = {name for _, names in self._moved[:through] for name in names}
             del self._moved[:through]
         described = self.output.describe(model, document['frame_id'], stamps, moved, provisional, confidence)
