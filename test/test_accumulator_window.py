@@ -86,6 +86,36 @@ def test_a_new_rest_pose_starts_a_skeleton_whose_joint_names_were_never_used(ros
     assert second['changes']['added'] == [f'joint_{i}' for i in sorted(second['joint_ids'])]
 
 
+@pytest.mark.parametrize('lossless', [True, False])
+def test_lossless_learns_every_window_that_comes_due_during_an_extraction(ros, monkeypatch, lossless):
+    """The first extraction is held while the rest of the frames come (windows of 10, every 2
+    after): with `lossless` (replay) each window that came due meanwhile is learned, in
+    order, as `run` learns them; live, only the newest waits."""
+    import threading
+
+    from skel_extract_ros.core.growth import SkeletonGrowth
+    rest, registered, _, _, _ = two_bone_sequence(n_frames=18)
+    release, learned = threading.Event(), []
+    original = SkeletonGrowth.update
+
+    def held(self, stamps, *args, **kwargs):
+        assert release.wait(60.0), 'the test never released the extraction'
+        learned.append([(s - T0) // DT for s in stamps])
+        return original(self, stamps, *args, **kwargs)
+    monkeypatch.setattr(SkeletonGrowth, 'update', held)
+    node = ros.add(AccumulatorNode, parameter_overrides=[
+        Parameter('window_size', value=10), Parameter('sliding', value=True), Parameter('stride', value=2),
+        Parameter('n_clusters', value=12), Parameter('lossless', value=lossless)])
+    publish_rest(ros, rest)
+    publish_frames(ros, registered, 0)
+    ros.wait(lambda: len(node.frames) == 10 and max(node.frames) == T0 + 17 * DT, what='every frame in')
+    release.set()
+    ros.wait(lambda: node.extractor.idle, what='the extractions')
+    ends = [window[-1] for window in learned]
+    assert ends == ([9, 11, 13, 15, 17] if lossless else [9, 17])
+    assert all(window == list(range(end - 9, end + 1)) for window, end in zip(learned, ends))
+
+
 def test_limbs_moving_in_different_windows_grow_one_structure_over_dds(ros):
     rest, left = three_part_chain(30, 'left')
     _, right = three_part_chain(30, 'right', seed=1)

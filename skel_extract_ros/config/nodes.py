@@ -63,6 +63,18 @@ class RegistrationNodeParams:
 
 
 @dataclass
+class AccumulatorNodeParams:
+    """The accumulator node's own parameters."""
+
+    lossless: bool = parameter(False, 'learn every window that comes due, in order, as skel-extract run learns '
+                               'them (bag replay; replay sets it): windows that come due during an extraction wait '
+                               'in a queue; false = a live camera: a newer window replaces a waiting one')
+
+    def __post_init__(self):
+        validate(self)
+
+
+@dataclass
 class JointNodeParams:
     """The joint estimation node's own parameters (the live fit, the buffer, the markers)."""
 
@@ -113,7 +125,8 @@ NODES = {
                                   'the subject in a room: the connected region that moves'),
                           Section(NODE_KEY, RegistrationNodeParams, title='the node: input, queues, priority')),
     'accumulator_node': (Section('structure', StructureParams, title='Sec. 5: skeletal structure'),
-                         Section('schedule', GrowthSchedule, title='when the skeleton is learned')),
+                         Section('schedule', GrowthSchedule, title='when the skeleton is learned'),
+                         Section(NODE_KEY, AccumulatorNodeParams, title='the node: lossless replay')),
     'joint_estimation_node': (Section('joints', JointParams, title='Sec. 6, Alg. 2, Eq. (11)-(15), Table 1'),
                               Section(NODE_KEY, JointNodeParams, title='the node: live fit, buffer, markers')),
 }

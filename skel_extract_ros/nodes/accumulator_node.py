@@ -12,7 +12,8 @@ skeleton (core.growth): the structure is learned on the most different poses see
 so a joint appears once its part has moved and stays; it is published again only when it
 changed. Extraction runs on a Worker (nodes/worker.py) so the subscriptions keep collecting
 meanwhile; a window that comes due during an extraction waits for it (a newer one
-replaces it).
+replaces it; with `lossless`, as in a bag replay, every window waits its turn, so the
+skeleton grows through the windows `skel-extract run` learns).
 """
 from __future__ import annotations
 
@@ -37,13 +38,17 @@ from .diagnostics import OK, WARN, NodeDiagnostics
 from .worker import RateMeter, Worker
 
 SECTION = 'accumulator_node'
+# with `lossless`, windows waiting for an extraction at most: a window of 60 frames of 2000
+# points is 1.4 MB. Windows come due at the registration's pace, seconds apart, and an
+# extraction takes seconds, so the queue stays short; past this the oldest is dropped, said
+LOSSLESS_WINDOWS = 100
 
 
 class AccumulatorNode(WorkingNode):
     def __init__(self, **kwargs):
         super().__init__('accumulator_node', **kwargs)
         params = declare_params(self, SECTION)
-        self.params, self.schedule = params['structure'], params['schedule']
+        self.params, self.schedule, self.settings = params['structure'], params['schedule'], params['node']
         self.log = ThrottledLog(self.get_logger())
         on_live_parameters(self, SECTION, self._apply_parameters)
         self.structure_pub = self.create_publisher(String, 'skeleton/structure', LATCHED_QOS)
@@ -56,7 +61,10 @@ class AccumulatorNode(WorkingNode):
         self.pairer = StampPairer()      # registered points with their filtered cloud, by stamp
         self._since_extraction = 0
         self._extracted_once = False
-        self.extractor = Worker(lambda job: self._extract(*job), 'structure', capacity=1,
+        # lossless: every due window waits its turn (a bag's windows, each a copy of its
+        # frames: a few MB each); live, only the newest waits
+        self.extractor = Worker(lambda job: self._extract(*job), 'structure',
+                                capacity=LOSSLESS_WINDOWS if self.settings.lossless else 1,
                                 on_error=self._extraction_failed)
         self.registered_rate = RateMeter()
         self.last_bones = 0
@@ -158,8 +166,10 @@ class AccumulatorNode(WorkingNode):
             self._extracted_once = True
         if not self.extractor.idle:
             self.get_logger().info(f'extraction running: the {reason} window of {len(stamps)} frames waits '
-                                   '(a newer one replaces it)')
-        self.extractor.submit((growth, rest_stamp, frame_id, stamps, window, reason))
+                                   + ('its turn' if self.settings.lossless else '(a newer one replaces it)'))
+        if self.extractor.submit((growth, rest_stamp, frame_id, stamps, window, reason)) and self.settings.lossless:
+            self.log.warn('windows_dropped', f'{LOSSLESS_WINDOWS} windows wait for an extraction: the oldest is '
+                                             'dropped (the extraction is much slower than the registration)')
         return True
 
     def _diagnostics(self) -> tuple:

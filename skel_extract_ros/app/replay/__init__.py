@@ -6,8 +6,9 @@ with their original header stamps, at the bag's pace scaled by `rate` (0 = as fa
 registration node takes them).
 - Lossless (the default): a frame is never published before the registration node has
   segmented the previous one, the registration node never skips one (lossless:=true: its
-  segmentation waits for registration) and the joint node answers registered frames
-  (live_frames:=registered), so the replay loses nothing however slow the machine is and
+  segmentation waits for registration), the accumulator learns every window that comes due
+  (lossless:=true: none replaced by a newer one) and the joint node answers registered
+  frames (live_frames:=registered), so the replay loses nothing however slow the machine is and
   gives the joints `skel-extract run` gives; the printed rate says what was sustained.
 - `realtime`: like a camera, at the bag's pace (times `rate`), best effort, never waiting
   for the nodes, every node on its defaults (camera frames get live joints); the summary

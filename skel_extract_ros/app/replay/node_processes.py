@@ -44,6 +44,8 @@ def start_nodes(params_file: Path | None, namespace: str | None, logs: Path, dep
                 command += ['-p', 'input_reliability:=reliable', '-p', 'lossless:=true']
             if depth_image:
                 command += ['-p', 'input:=depth_image']
+        if name == 'accumulator_node' and lossless:   # the windows `run` learns: none replaced
+            command += ['-p', 'lossless:=true']
         if name == 'joint_estimation_node' and lossless:   # the joints `run` gives: every registered frame
             command += ['-p', 'live_frames:=registered']
         if namespace:
