@@ -165,7 +165,7 @@ class AccumulatorNode(WorkingNode):
             self._since_extraction = 0
             self._extracted_once = True
         if not self.extractor.idle:
-            self.get_logger().info(f'extraction running: the {reason} window of {len(stamps)} frames waits '
+            self.get_logger().info(f'extraction running: the window of {len(stamps)} frames ({reason}) waits '
                                    + ('its turn' if self.settings.lossless else '(a newer one replaces it)'))
         if self.extractor.submit((growth, rest_stamp, frame_id, stamps, window, reason)) and self.settings.lossless:
             self.log.warn('windows_dropped', f'{LOSSLESS_WINDOWS} windows wait for an extraction: the oldest is '

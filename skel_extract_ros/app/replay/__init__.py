@@ -9,7 +9,9 @@ registration node takes them).
   segmentation waits for registration), the accumulator learns every window that comes due
   (lossless:=true: none replaced by a newer one) and the joint node answers registered
   frames (live_frames:=registered), so the replay loses nothing however slow the machine is and
-  gives the joints `skel-extract run` gives; the printed rate says what was sustained.
+  gives the joints `skel-extract run` gives; it ends once the accumulator has learned every
+  window and the joint node has described the newest structure (a growing skeleton ends as
+  run's does). The printed rate says what was sustained.
 - `realtime`: like a camera, at the bag's pace (times `rate`), best effort, never waiting
   for the nodes, every node on its defaults (camera frames get live joints); the summary
   then says how many camera frames got joints, at what rate, and with what latency (cloud
@@ -327,12 +329,38 @@ class _Replay:
         if not self._wait(lambda: received.structure is not None, budget):
             raise ReplayError('no skeleton/structure: ' + log_tail(self.out / 'logs' / 'accumulator_node.log', 1))
 
+        if not self.realtime:
+            self._wait_for_growth(budget)
+
         def complete():
             # markers follow each joints message: the last ones must be in before the nodes stop
             return (answered(received, self.realtime)
                     and received.counts.get('skeleton/markers', 0) >= received.counts.get('skeleton/joints', 0))
         if not self._wait(complete, budget):
             raise ReplayError('joints missing for some frames: '
+                              + log_tail(self.out / 'logs' / 'joint_estimation_node.log', 1))
+
+
+    def _wait_for_growth(self, budget: float) -> None:
+        """Lossless: the skeleton as `run` ends it. A skeleton that grows (`sliding`) has
+        windows queued at the accumulator (lossless) when the last frame is registered: wait
+        until it reports, after having every registered frame, that none is left, and until
+        the joint node has described the newest structure."""
+        received = self.received
+
+        def has_every_frame():
+            return bool(received.accumulator) and int(received.accumulator['newest_stamp_ns']) >= max(received.registered)
+        if not self._wait(has_every_frame, budget):
+            raise ReplayError('the accumulator did not report the last registered frame: '
+                              + log_tail(self.out / 'logs' / 'accumulator_node.log', 1))
+        # a report made while the last frame's window was being queued can still say idle: the next one
+        reports = received.accumulator_reports
+        if not self._wait(lambda: received.accumulator_reports > reports
+                          and received.accumulator.get('extracting') == 'False', budget):
+            raise ReplayError('the accumulator is still extracting: '
+                              + log_tail(self.out / 'logs' / 'accumulator_node.log', 1))
+        if not self._wait(lambda: _described(received), budget):
+            raise ReplayError('the newest skeleton/structure was not described: '
                               + log_tail(self.out / 'logs' / 'joint_estimation_node.log', 1))
 
 

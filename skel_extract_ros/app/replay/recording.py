@@ -50,6 +50,7 @@ class Received:
     frame_id: str = ''
     counts: dict = field(default_factory=dict)            # topic -> messages
     accumulator: dict = field(default_factory=dict)       # its newest /diagnostics values (str)
+    accumulator_reports: int = 0                          # how many of those came
     registration: dict = field(default_factory=dict)      # the registration node's, the same
 
 
@@ -125,6 +126,7 @@ class _Recorder:
                 for status in msg.status:
                     if status.name.endswith('/accumulator_node'):
                         r.accumulator = {kv.key: kv.value for kv in status.values}
+                        r.accumulator_reports += 1
                     elif status.name.endswith('/registration_node'):
                         r.registration = {kv.key: kv.value for kv in status.values}
             self.condition.notify_all()
