@@ -71,7 +71,8 @@ def test_a_new_rest_pose_starts_a_skeleton_whose_joint_names_were_never_used(ros
     old one's, so a consumer keying on names never takes a new joint for an old one."""
     rest, left = three_part_chain(30, 'left')
     _, right = three_part_chain(30, 'right', seed=1)
-    ros.add(AccumulatorNode, parameter_overrides=[Parameter('window_size', value=30), Parameter('n_clusters', value=20)])
+    ros.add(AccumulatorNode, parameter_overrides=[Parameter('window_size', value=30),
+                                                  Parameter('n_clusters', value=20)])
     structures = ros.listen('skeleton/structure', String, LATCHED_QOS)
     publish_rest(ros, rest)
     publish_frames(ros, left, 0)

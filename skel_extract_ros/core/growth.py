@@ -19,8 +19,9 @@ are matched (rest frame, core.matching's gated assignment) to every joint the mo
 ever had, within `joint_match_fraction` of the subject size; a matched joint keeps its id,
 a new one gets the next id, and names are `joint_<id>`, so consumers keying on names see
 the same joint across updates. A skeleton started after another (a new rest pose) begins
-at the other's `next_id`, so a name is never given to two joints. `GrowthUpdate.changes` says what changed: joints added,
-removed, re-parented, or moved by more than the match radius over two.
+at the other's `next_id`, so a name is never given to two joints. `GrowthUpdate.changes`
+says what changed: joints added, removed, re-parented, or moved by more than the match
+radius over two.
 """
 from __future__ import annotations
 

@@ -349,7 +349,8 @@ class _Replay:
         received = self.received
 
         def has_every_frame():
-            return bool(received.accumulator) and int(received.accumulator['newest_stamp_ns']) >= max(received.registered)
+            values = received.accumulator
+            return bool(values) and int(values['newest_stamp_ns']) >= max(received.registered)
         if not self._wait(has_every_frame, budget):
             raise ReplayError('the accumulator did not report the last registered frame: '
                               + log_tail(self.out / 'logs' / 'accumulator_node.log', 1))
