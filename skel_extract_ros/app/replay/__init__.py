@@ -340,7 +340,6 @@ class _Replay:
             raise ReplayError('joints missing for some frames: '
                               + log_tail(self.out / 'logs' / 'joint_estimation_node.log', 1))
 
-
     def _wait_for_growth(self, budget: float) -> None:
         """Lossless: the skeleton as `run` ends it. A skeleton that grows (`sliding`) has
         windows queued at the accumulator (lossless) when the last frame is registered: wait
