@@ -705,6 +705,48 @@ def test_a_description_lists_the_changes_since_the_previous_description_when_a_s
         assert names == set(document['joint_names'])
 
 
+def test_the_moved_joints_of_structures_alg2_failed_on_reach_the_next_description(ros, monkeypatch):
+    """After a description, Alg. 2 fails on 40 structures in a row, the first two of which
+    moved joint_0 and joint_1; the next structure is described: its `changes` list both
+    moved, though the node kept at most MAX_UNDESCRIBED entries meanwhile (the oldest
+    merged)."""
+    from skel_extract_ros.codecs.messages import parse_structure
+    from skel_extract_ros.core.joints import JointEstimation
+    from skel_extract_ros.nodes import joint_stages
+    rest, registered, _, _, _ = two_bone_sequence(n_frames=12)
+    node = ros.add(JointEstimationNode, parameter_overrides=[Parameter('live_frames', value='registered')])
+    description = ros.listen('skeleton/description', String, LATCHED_QOS)
+    ros.wait_matched(_publish_rest(ros, rest))
+    _publish_two_bone(ros, rest, registered)
+    ros.wait(lambda: len(node.stages.buffer) == 12, what='the window frames buffered')
+    structure = extract_structure(rest, registered, StructureParams(n_clusters=12))
+    stamps = [T0 + i * DT for i in range(12)]
+
+    def document(moved):
+        return parse_structure(json.dumps(structure_document(structure, T0, stamps, 'camera_depth_optical_frame',
+                                                             [0, 1], {'moved': moved})))
+    failing = {'on': False}
+
+    class FailingJointEstimation(JointEstimation):
+        def fit(self, *args, **kwargs):
+            if failing['on']:
+                raise RuntimeError('no fit')
+            return super().fit(*args, **kwargs)
+    monkeypatch.setattr(joint_stages, 'JointEstimation', FailingJointEstimation)
+    node.stages.structure(document([]))
+    ros.wait(lambda: len(description) == 1, what='the first description')
+    failing['on'] = True
+    for k in range(40):
+        node.stages.structure(document([f'joint_{k}'] if k < 2 else []))
+        assert node.stages.estimator.wait_idle(10.0)
+    assert node.stages.estimator.failed == 40 and len(node.stages._moved) == joint_stages.MAX_UNDESCRIBED
+    failing['on'] = False
+    node.stages.structure(document([]))
+    ros.wait(lambda: len(description) == 2, what='the description after the failures')
+    changes = json.loads(description[1].data)['changes']
+    assert changes == {'added': [], 'removed': [], 'reparented': [], 'moved': ['joint_0', 'joint_1']}
+
+
 MALFORMED = [
     pytest.param(lambda doc: '{not json', id='not-json'),
     pytest.param(lambda doc: json.dumps({**doc, 'version': 99}), id='unknown-version'),
