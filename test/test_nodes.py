@@ -705,6 +705,36 @@ def test_a_description_lists_the_changes_since_the_previous_description_when_a_s
         assert names == set(document['joint_names'])
 
 
+def test_lossless_describes_every_structure_in_order(ros, held_alg2):
+    """lossless (replay): structures B and C come while Alg. 2 runs on A; both wait their
+    turn, and A, B and C are described in order, each with its own changes."""
+    rest, registered, _, _, _ = two_bone_sequence(n_frames=13)
+    node = ros.add(JointEstimationNode, parameter_overrides=[Parameter('live_frames', value='registered'),
+                                                             Parameter('lossless', value=True)])
+    description = ros.listen('skeleton/description', String, LATCHED_QOS)
+    _learn_frames_0_to_11_with_12_registered_after(ros, node, rest, registered)       # A: joint_0, joint_1
+    ros.wait(lambda: not node.stages.estimator.idle, what="Alg. 2 on A")
+    structure = extract_structure(rest, registered[:12], StructureParams(n_clusters=12))
+    stamps = [T0 + i * DT for i in range(12)]
+    pub = ros.publisher('skeleton/structure', String, LATCHED_QOS)
+    ros.wait_matched(pub)
+    for ids, changes in (([0, 7], {'added': ['joint_7'], 'removed': ['joint_1']}),
+                         ([0, 8], {'added': ['joint_8'], 'removed': ['joint_7'], 'moved': ['joint_0']})):
+        submitted = node.stages.estimator.stats()['submitted']
+        pub.publish(String(data=json.dumps(structure_document(structure, T0, stamps, 'camera_depth_optical_frame',
+                                                              ids, changes))))
+        ros.wait(lambda: node.stages.estimator.stats()['submitted'] == submitted + 1,
+                 what=f'the structure with joint_{ids[1]} waiting')
+    held_alg2.set()
+    ros.wait(lambda: len(description) == 3 and node.stages.estimator.idle, what='the three descriptions')
+    assert node.stages.estimator.stats()['dropped'] == 0
+    documents = [json.loads(m.data) for m in description]
+    assert [d['joint_names'] for d in documents] == [['joint_0', 'joint_1'], ['joint_0', 'joint_7'],
+                                                     ['joint_0', 'joint_8']]
+    assert [(d['changes']['added'], d['changes']['removed'], d['changes']['moved']) for d in documents[1:]] == [
+        (['joint_7'], ['joint_1'], []), (['joint_8'], ['joint_7'], ['joint_0'])]
+
+
 def test_the_moved_joints_of_structures_alg2_failed_on_reach_the_next_description(ros, monkeypatch):
     """After a description, Alg. 2 fails on 40 structures in a row, the first two of which
     moved joint_0 and joint_1; the next structure is described: its `changes` list both

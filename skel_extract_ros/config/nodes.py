@@ -100,6 +100,9 @@ class JointNodeParams:
                                          'larger); 0 = same priority', 0, 19)
     joint_diameter: float = parameter(0.04, 'diameter of the joint spheres in skeleton/markers, m', 1e-4, 10.0,
                                       live=True)
+    lossless: bool = parameter(False, 'run Alg. 2 on every skeleton/structure, in order (bag replay; replay sets '
+                               'it): structures that come while it runs wait in a queue; false = a live camera: a '
+                               'newer structure replaces a waiting one')
 
     def __post_init__(self):
         validate(self)

@@ -7,8 +7,8 @@ registration node takes them).
 - Lossless (the default): a frame is never published before the registration node has
   segmented the previous one, the registration node never skips one (lossless:=true: its
   segmentation waits for registration), the accumulator learns every window that comes due
-  (lossless:=true: none replaced by a newer one) and the joint node answers registered
-  frames (live_frames:=registered), so the replay loses nothing however slow the machine is and
+  (lossless:=true: none replaced by a newer one) and the joint node runs Alg. 2 on every
+  structure (lossless:=true) and answers registered frames (live_frames:=registered), so the replay loses nothing however slow the machine is and
   gives the joints `skel-extract run` gives; it ends once the accumulator has learned every
   window and the joint node has described the newest structure (a growing skeleton ends as
   run's does). The printed rate says what was sustained.

@@ -47,7 +47,7 @@ def start_nodes(params_file: Path | None, namespace: str | None, logs: Path, dep
         if name == 'accumulator_node' and lossless:   # the windows `run` learns: none replaced
             command += ['-p', 'lossless:=true']
         if name == 'joint_estimation_node' and lossless:   # the joints `run` gives: every registered frame
-            command += ['-p', 'live_frames:=registered']
+            command += ['-p', 'live_frames:=registered', '-p', 'lossless:=true']
         if namespace:
             command += ['-r', f'__ns:={namespace}']
         log = open(logs / f'{name}.log', 'w')
