@@ -35,13 +35,9 @@ from .common import (LATCHED_QOS, STREAM_QOS, StampPairer, ThrottledLog, Working
                      run_node)
 from ..codecs.messages import stamp_ns, structure_document
 from .diagnostics import OK, WARN, NodeDiagnostics
-from .worker import RateMeter, Worker
+from .worker import LOSSLESS_CAPACITY, RateMeter, Worker
 
 SECTION = 'accumulator_node'
-# with `lossless`, windows waiting for an extraction at most: a window of 60 frames of 2000
-# points is 1.4 MB. Windows come due at the registration's pace, seconds apart, and an
-# extraction takes seconds, so the queue stays short; past this the oldest is dropped, said
-LOSSLESS_WINDOWS = 100
 
 
 class AccumulatorNode(WorkingNode):
@@ -61,10 +57,9 @@ class AccumulatorNode(WorkingNode):
         self.pairer = StampPairer()      # registered points with their filtered cloud, by stamp
         self._since_extraction = 0
         self._extracted_once = False
-        # lossless: every due window waits its turn (a bag's windows, each a copy of its
-        # frames: a few MB each); live, only the newest waits
+        # lossless: every due window waits its turn; live, only the newest waits
         self.extractor = Worker(lambda job: self._extract(*job), 'structure',
-                                capacity=LOSSLESS_WINDOWS if self.settings.lossless else 1,
+                                capacity=LOSSLESS_CAPACITY if self.settings.lossless else 1,
                                 on_error=self._extraction_failed)
         self.registered_rate = RateMeter()
         self.last_bones = 0
@@ -168,7 +163,7 @@ class AccumulatorNode(WorkingNode):
             self.get_logger().info(f'extraction running: the window of {len(stamps)} frames ({reason}) waits '
                                    + ('its turn' if self.settings.lossless else '(a newer one replaces it)'))
         if self.extractor.submit((growth, rest_stamp, frame_id, stamps, window, reason)) and self.settings.lossless:
-            self.log.warn('windows_dropped', f'{LOSSLESS_WINDOWS} windows wait for an extraction: the oldest is '
+            self.log.warn('windows_dropped', f'{LOSSLESS_CAPACITY} windows wait for an extraction: the oldest is '
                                              'dropped (the extraction is much slower than the registration)')
         return True
 

@@ -2,10 +2,10 @@
 filtered pairs for Alg. 2, registered frames for the live answers), Alg. 2 on each
 structure's window on a Worker (one at a time; a newer structure replaces a waiting one,
 or, with `lossless`, waits behind it), the model served (Step 2's provisional one first),
-and the live joints: the learned model
-fitted to every camera frame (core.live.CameraTracker, live_frames camera) or to every
-registered frame (core.live.LiveJointTracker, live_frames registered). What it publishes
-goes through the node's SkeletonOutput (nodes/skeleton_output.py).
+and the live joints: the learned model fitted to every camera frame
+(core.live.CameraTracker, live_frames camera) or to every registered frame
+(core.live.LiveJointTracker, live_frames registered). What it publishes goes through the
+node's SkeletonOutput (nodes/skeleton_output.py).
 """
 from __future__ import annotations
 
@@ -23,13 +23,10 @@ from ..core.skeleton_model import SkeletonModel
 from ..core.structure import SkeletalStructure
 from .common import StampPairer, release_freed_memory
 from .skeleton_output import registered_hints
-from .worker import RateMeter, Worker
+from .worker import LOSSLESS_CAPACITY, RateMeter, Worker
 
 # structures whose moved joints wait for a description, at most (Alg. 2 failing on each)
 MAX_UNDESCRIBED = 32
-# with `lossless`, structures waiting for Alg. 2 at most: a job holds its window's frames (a
-# few MB); structures come seconds apart and Alg. 2 takes seconds, so the queue stays short
-LOSSLESS_STRUCTURES = 100
 
 
 class JointStages:
@@ -58,9 +55,9 @@ class JointStages:
         self._moved = []                     # (structure number, joint names it moved), not yet described
         self._structures = 0                 # structures accepted so far: each job's number
         # Alg. 2 runs for seconds beside the live fit of every camera frame: below it.
-        # Lossless, every structure waits its turn (each job holds its window's frames)
+        # Lossless, every structure waits its turn
         self.lossless = settings.lossless
-        self.estimator = Worker(self._estimate, 'joints', capacity=LOSSLESS_STRUCTURES if self.lossless else 1,
+        self.estimator = Worker(self._estimate, 'joints', capacity=LOSSLESS_CAPACITY if self.lossless else 1,
                                 on_error=self._estimation_failed, niceness=settings.estimation_niceness)
         self.live_ms = collections.deque(maxlen=1000)      # per live frame fit
         self.joints_rate = RateMeter()
@@ -190,7 +187,7 @@ class JointStages:
             self.logger.info('joint estimation running: the new structure waits '
                              + ('its turn' if self.lossless else '(a newer one replaces it)'))
         if self.estimator.submit((document, rest, found, frames, sequence)) and self.lossless:
-            self.log.warn('structures_dropped', f'{LOSSLESS_STRUCTURES} structures wait for Alg. 2: the oldest is '
+            self.log.warn('structures_dropped', f'{LOSSLESS_CAPACITY} structures wait for Alg. 2: the oldest is '
                                                 'dropped (Alg. 2 is much slower than the accumulator)')
 
     def _estimation_failed(self, _job, error) -> None:

@@ -20,6 +20,11 @@ import time
 import traceback
 from typing import Callable
 
+# A lossless node's long jobs (the accumulator's windows, the joint node's structures) wait
+# in a queue of at most this many, not one: each holds its window's frames, a few MB. Jobs
+# come due seconds apart at the registration's pace and take seconds, so the queue stays
+# short; past this the oldest is dropped (counted, and the node says so).
+LOSSLESS_CAPACITY = 100
 
 def lower_priority(task_id: int, niceness: int, idle_class: bool = False) -> None:
     """Add `niceness` to the nice value of thread or process `task_id` (Linux keeps one per

@@ -8,8 +8,9 @@ registration node takes them).
   segmented the previous one, the registration node never skips one (lossless:=true: its
   segmentation waits for registration), the accumulator learns every window that comes due
   (lossless:=true: none replaced by a newer one) and the joint node runs Alg. 2 on every
-  structure (lossless:=true) and answers registered frames (live_frames:=registered), so the replay loses nothing however slow the machine is and
-  gives the joints `skel-extract run` gives; it ends once the accumulator has learned every
+  structure (lossless:=true) and answers registered frames (live_frames:=registered), so
+  the replay loses nothing however slow the machine is and gives the joints `skel-extract
+  run` gives; it ends once the accumulator has learned every
   window and the joint node has described the newest structure (a growing skeleton ends as
   run's does). The printed rate says what was sustained.
 - `realtime`: like a camera, at the bag's pace (times `rate`), best effort, never waiting
@@ -305,9 +306,8 @@ class _Replay:
             # the window must hold every replayed frame, as `run`'s does (its 1 Hz diagnostics tell)
             def collected():
                 values = received.accumulator
-                return bool(values) and int(values['frames']) >= min(int(values['window_size']),
-                                                                    len(received.registered)) \
-                    and int(values['newest_stamp_ns']) >= max(received.registered)
+                return _accumulator_has_every_frame(received) and \
+                    int(values['frames']) >= min(int(values['window_size']), len(received.registered))
             if not self._wait(collected, 10.0):
                 print('skel-extract replay: the accumulator did not report every registered frame '
                       f'within 10 s ({received.accumulator.get("frames", "no")} frames); extracting anyway',
@@ -346,11 +346,7 @@ class _Replay:
         until it reports, after having every registered frame, that none is left, and until
         the joint node has described the newest structure."""
         received = self.received
-
-        def has_every_frame():
-            values = received.accumulator
-            return bool(values) and int(values['newest_stamp_ns']) >= max(received.registered)
-        if not self._wait(has_every_frame, budget):
+        if not self._wait(lambda: _accumulator_has_every_frame(received), budget):
             raise ReplayError('the accumulator did not report the last registered frame: '
                               + log_tail(self.out / 'logs' / 'accumulator_node.log', 1))
         # a report made while the last frame's window was being queued can still say idle: the next one
@@ -362,6 +358,12 @@ class _Replay:
         if not self._wait(lambda: _described(received), budget):
             raise ReplayError('the newest skeleton/structure was not described: '
                               + log_tail(self.out / 'logs' / 'joint_estimation_node.log', 1))
+
+
+def _accumulator_has_every_frame(received: Received) -> bool:
+    """Whether the accumulator's newest report says it has the newest registered frame."""
+    values = received.accumulator
+    return bool(values) and int(values['newest_stamp_ns']) >= max(received.registered)
 
 
 def answered(received: Received, realtime: bool) -> bool:
