@@ -218,7 +218,7 @@ def segmentation_scores(bag: Path, gt_path: Path) -> dict:
 JOINT_KEYS = ('n_predicted', 'n_matched', 'recall', 'articulated_recall', 'articulated_recall_10cm',
               'articulated_recall_5cm', 'n_articulated', 'moving_recall', 'n_moving', 'tracking_skill',
               'frame_coverage', 'precision', 'articulated_precision', 'mean_error_m', 'normalized_error_m',
-              'motion_skill', 'nonfinite_fraction', 'threshold_m')
+              'motion_skill', 'nonfinite_fraction', 'threshold_m', 'confidence_auc', 'n_far_answers')
 
 
 def _num(value) -> float:
@@ -336,7 +336,7 @@ SUMMARY_KEYS = (('articulated_recall', 'artic. recall', 1.0), ('articulated_reca
                 ('mean_error_m', 'joint mean (cm)', 100.0),
                 ('normalized_error_m', 'offset removed (cm)', 100.0), ('moving_recall', 'moving recall', 1.0),
                 ('tracking_skill', 'tracking skill', 1.0), ('frame_coverage', 'frame coverage', 1.0),
-                ('reg_mean_m', 'reg mean (cm)', 100.0))
+                ('reg_mean_m', 'reg mean (cm)', 100.0), ('confidence_auc', 'confidence rank', 1.0))
 
 
 def summary_table(rows: list) -> str:

@@ -9,13 +9,16 @@ from skel_extract_ros.app.evaluation import (EvaluationError, GroundTruth, Predi
 from skel_extract_ros.sim import generate_sequence
 
 
-def skeleton_json(path, stamps, positions, names=None):
-    """A skeleton.json of positions (F, J, 3): a chain, joint 0 its root."""
+def skeleton_json(path, stamps, positions, names=None, confidence=None):
+    """A skeleton.json of positions (F, J, 3), with each frame's confidence (F, J) when
+    given: a chain, joint 0 its root."""
     names = names or [f'joint_{i}' for i in range(positions.shape[1])]
     doc = {'frame_id': 'camera_depth_optical_frame', 'joint_names': names,
            'parents': [-1] + list(range(len(names) - 1)),
            'rest_positions': positions[0].tolist(),
            'frames': [{'stamp': float(s), 'positions': p.tolist()} for s, p in zip(stamps, positions)]}
+    for frame, values in zip(doc['frames'], confidence if confidence is not None else []):
+        frame['confidence'] = values.tolist()
     path.write_text(json.dumps(doc))
     return path
 
@@ -433,3 +436,27 @@ def test_a_root_beside_a_joint_does_not_find_it(tmp_path, gt_pair):
                                                        gt.joints[:, others[1:]]], axis=1))
     rows = {row['ground_truth']: row for row in as_child.per_joint}
     assert rows['l_shoulder']['found'] and as_child.n_matched == len(others) + 1
+
+
+def test_the_confidence_is_scored_by_how_it_ranks_the_answers_beyond_the_threshold(tmp_path, gt_pair):
+    gt = gt_pair[0]
+    rng = np.random.default_rng(4)
+    predicted = gt.joints + rng.normal(scale=0.01, size=gt.joints.shape)
+    lost = np.zeros(gt.joints.shape[:2], dtype=bool)
+    lost[rng.choice(len(gt.stamps), 6, replace=False), 5:9] = True
+    predicted[lost] += np.array([0.0, 0.3, 0.0])       # 4 joints 30 cm off in 6 of 30 frames
+    path = tmp_path / 'skeleton.json'
+
+    def scored(confidence):
+        return evaluate_joints(PredictedSkeleton.load(skeleton_json(path, gt.stamps, predicted,
+                                                                    confidence=confidence)), gt)
+
+    flagged = scored(np.where(lost, 0.2, 0.9))
+    assert flagged.recall == 1.0 and flagged.n_far_answers == 24
+    assert flagged.confidence_auc == 1.0
+    assert scored(np.where(lost, 0.9, 0.2)).confidence_auc == 0.0
+    assert scored(np.full(lost.shape, 0.7)).confidence_auc == 0.5
+    # a confidence that only half the far answers have below the rest
+    half = np.where(lost & (np.arange(lost.shape[1]) < 7), 0.2, 0.9)
+    assert 0.5 < scored(half).confidence_auc < 1.0
+    assert np.isnan(evaluate(tmp_path, gt, predicted).confidence_auc)      # no confidence published

@@ -70,3 +70,41 @@ def test_tracker_confidence_on_registered_and_observed_points():
     # observed points of the parent bone only: the child's bone is unseen, confidence 0
     seen = tracker.confidence(rotations, translations, registered[2][labels == 0], corresponding=False)
     assert seen[0] > 0.99 and seen[1] == 0.0, seen
+
+
+def test_a_bone_posed_outside_the_silhouette_loses_its_confidence_whatever_its_residual():
+    rest, registered, labels, _, joints = two_bone_sequence(n_frames=4)
+    in_front = np.array([0.0, 0.0, 2.0])                 # 2 m from the camera, its rays apart
+    rest, registered, joint = rest + in_front, registered + in_front, joints[2] + in_front
+    model = SkeletonModel(rest, labels, np.array([-1, 0]), np.array([[-0.15, 0, 2.0], [0.0, 0, 2.0]]),
+                          labels[:, None], np.ones((len(rest), 1)))
+    tracker = LiveJointTracker(model)
+    observed = registered[2]
+    # a registration that turned the child bone 90 degrees about its joint, into empty
+    # space: the fit follows it
+    lost = observed.copy()
+    turn = Rotation.from_rotvec([0.0, 0.0, np.pi / 2]).as_matrix()
+    lost[labels == 1] = (observed[labels == 1] - joint) @ turn.T + joint
+    rotations, translations = tracker.fit(lost)
+    residual_only = tracker.confidence(rotations, translations, lost, corresponding=True)
+    assert residual_only.min() > 0.99, residual_only
+    seen = tracker.confidence(rotations, translations, lost, corresponding=True, observed=observed)
+    assert seen[0] > 0.99 and seen[1] < 0.2, seen        # its end near the joint is still in view
+    # the camera path: the same pose against the frame's observed points
+    assert tracker.confidence(rotations, translations, observed, corresponding=False)[1] < 0.2
+    # where the registration is right, the silhouette takes nothing away
+    rotations, translations = tracker.fit(observed)
+    np.testing.assert_allclose(tracker.confidence(rotations, translations, observed, True, observed), [1.0, 1.0],
+                               atol=1e-6)
+
+
+def test_the_share_outside_the_silhouette_is_counted_per_bone():
+    from skel_extract_ros.core.confidence import outside_silhouette
+    from skel_extract_ros.core.registration.visibility import ObservedView
+    grid = np.stack(np.meshgrid(np.linspace(-0.2, 0.2, 41), np.linspace(-0.2, 0.2, 41)), -1).reshape(-1, 2)
+    observed = np.column_stack([grid, np.full(len(grid), 2.0)])          # a wall 2 m away, 1 cm apart
+    posed = np.array([[0.0, 0, 2.0], [0.1, 0.1, 1.9], [0.5, 0, 2.0], [0.0, 0.6, 2.2], [0.05, 0.05, 2.5]])
+    shares = outside_silhouette(3, [0, 0, 1, 1, 2], posed, ObservedView(observed))
+    np.testing.assert_allclose(shares, [0.0, 1.0, 0.0])
+    np.testing.assert_allclose(joint_confidence([-1, 0, 1], [0] * 20 + [1] * 20 + [2] * 20, np.zeros(60), shares),
+                               [1.0, 0.0, 0.0])

@@ -21,14 +21,25 @@ Bone b gets
 
 (1 when its points sit on the data, 1/2 at an RMS residual of HALF_RESIDUAL, and 0 for a
 bone the frame did not see at all: its joint then comes from the joint term and the
-previous pose only), and joint b, which sits between bone b and its parent bone, the
-smaller of the two bones' confidences (the root joint, the root bone's centre, its bone's).
-It says how well the posed model explains the points near a joint, not whether the joint
-is anatomically right: a bone that fits its points may still pivot at the wrong place.
+previous pose only), times 1 - o_b when the frame's observed points are at hand, o_b the
+share of bone b's posed points that lie outside the subject's silhouette (no observed ray
+passes near theirs: `outside_silhouette`). The camera saw nothing where those points are,
+so the pose there is wrong whatever the residual says: a registration that lost a limb
+carries it into empty space with its points, and fits it as well as any other (the
+residual of a registered frame compares the pose with the registration, not with the
+camera). A bone hidden behind the body stays inside the silhouette and keeps its
+confidence: the camera cannot tell.
+
+Joint b, which sits between bone b and its parent bone, gets the smaller of the two bones'
+confidences (the root joint, the root bone's centre, its bone's). It says how well the
+posed model explains the points near a joint, not whether the joint is anatomically right:
+a bone that fits its points may still pivot at the wrong place.
 """
 from __future__ import annotations
 
 import numpy as np
+
+from .registration.visibility import ObservedView
 
 # the RMS residual (m) at which a bone's confidence is one half: about twice the spread of
 # the registered points around the posed model on the sample bag's good frames
@@ -52,9 +63,24 @@ def bone_confidence(n_bones: int, bone_of_sample: np.ndarray, squared_residuals:
     return fit * np.minimum(1.0, counts / MIN_SAMPLES)
 
 
-def joint_confidence(parents, bone_of_sample: np.ndarray, squared_residuals: np.ndarray) -> np.ndarray:
+def outside_silhouette(n_bones: int, bone_of_point: np.ndarray, posed: np.ndarray, view: ObservedView) -> np.ndarray:
+    """(B,) share of each bone's posed points (M, 3) m, bone_of_point (M,), that lie outside
+    the silhouette of the frame's observed view (no observed ray within the view's
+    SILHOUETTE_SPACINGS ray spacings of theirs); 0 for a bone without points."""
+    outside = view.outside(posed)
+    bone_of_point = np.asarray(bone_of_point, dtype=np.int64).reshape(-1)
+    counts = np.bincount(bone_of_point, minlength=n_bones)[:n_bones]
+    return np.bincount(bone_of_point, weights=outside, minlength=n_bones)[:n_bones] / np.maximum(counts, 1)
+
+
+def joint_confidence(parents, bone_of_sample: np.ndarray, squared_residuals: np.ndarray,
+                     bone_outside: np.ndarray | None = None) -> np.ndarray:
     """(J,) confidence in [0, 1] of each joint of a frame (joint b: between bone b and its
-    parent bone; parents (J,), -1 for the root). Samples as in bone_confidence."""
+    parent bone; parents (J,), -1 for the root). Samples as in bone_confidence;
+    bone_outside (B,): each bone's share of posed points outside the silhouette
+    (`outside_silhouette`; None: not known)."""
     parents = np.asarray(parents, dtype=np.int64)
     bones = bone_confidence(len(parents), bone_of_sample, squared_residuals)
+    if bone_outside is not None:
+        bones = bones * (1.0 - np.clip(bone_outside, 0.0, 1.0))
     return np.where(parents >= 0, np.minimum(bones, bones[np.maximum(parents, 0)]), bones)

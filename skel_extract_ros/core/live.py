@@ -48,10 +48,11 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .articulated import BoneBlocks
-from .confidence import joint_confidence
+from .confidence import joint_confidence, outside_silhouette
 from .gmm import CandidateCache
 from .joints import JointParams
 from .point_sets import finite_rows, median_spacing
+from .registration.visibility import ObservedView
 from .rigid import fit_rigid_segments, weighted_rigid_fit
 from .skeleton_model import SkeletonModel
 from .joint_centres import joint_trajectories
@@ -150,23 +151,35 @@ class _BoneBlocks:
         return joint_trajectories(rotations[None], translations[None], self._joints, self._parents)[0]
 
     def confidence(self, rotations: np.ndarray, translations: np.ndarray, points: np.ndarray,
-                   corresponding: bool) -> np.ndarray:
+                   corresponding: bool, observed: np.ndarray | None = None) -> np.ndarray:
         """(J,) per-joint confidence in [0, 1] (core.confidence) of the pose (rotations
         (B, 3, 3), translations (B, 3)) against a frame's points, m: its registered points
         (M, 3), which correspond to the model's (corresponding=True), or its observed subject
-        points (N, 3), each matched to the nearest posed model point."""
+        points (N, 3), each matched to the nearest posed model point. observed (N, 3) m: the
+        frame's observed subject points, whose silhouette the posed bones must lie in (the
+        observed `points` themselves when not corresponding; None with registered points:
+        the residual alone)."""
         posed = self.deform(rotations, translations)
         points = np.asarray(points, dtype=np.float64)
+        if not corresponding:
+            observed = points
+        outside = None
+        if observed is not None:
+            observed = np.asarray(observed, dtype=np.float64)
+            observed = observed[finite_rows(observed)]
+            view = ObservedView(observed) if len(observed) >= 2 else None
+            if view is not None and view.ray_spacing > 0:     # a silhouette of more than one ray
+                outside = outside_silhouette(self.n_bones, self._dominant, posed, view)
         if corresponding:
             squared = np.sum((points[self._subset] - posed) ** 2, axis=1)
-            return joint_confidence(self._parents, self._dominant, squared)
+            return joint_confidence(self._parents, self._dominant, squared, outside)
         points = points[finite_rows(points)]
         # a strided subset, as the fit uses: the mean residual per bone needs no more
         points = points[::max(1, -(-len(points) // CONFIDENCE_SAMPLES))]
         if len(points) == 0:
             return np.zeros(self.n_bones)
         distance, nearest = cKDTree(posed).query(points)
-        return joint_confidence(self._parents, self._dominant[nearest], distance ** 2)
+        return joint_confidence(self._parents, self._dominant[nearest], distance ** 2, outside)
 
 
 class LiveJointTracker(_BoneBlocks):

@@ -137,7 +137,7 @@ class _LearningStream:
     def _fit(self, tracker: LiveJointTracker, frame: int) -> tuple:
         rotations, translations = tracker.fit(self.window[frame])
         return (tracker.joints_of(rotations, translations),
-                tracker.confidence(rotations, translations, self.window[frame], True))
+                tracker.confidence(rotations, translations, self.window[frame], True, self.observed[frame]))
 
     def learn(self, start: int, stop: int, raising: bool) -> bool:
         """Learn on frames start..stop-1 (with the key frames seen before); False when they
@@ -161,7 +161,7 @@ class _LearningStream:
         for k, (frame, positions) in enumerate(zip(update.key_stamps, estimate.joint_trajectories())):
             if frame > newest:
                 confidence = tracker.confidence(estimate.rotations[k], estimate.translations[k],
-                                                self.window[frame], True)
+                                                self.window[frame], True, self.observed[frame])
                 self.answers[int(frame)] = (update, positions, confidence)
         self.update, self.tracker = update, tracker
         # frames up to `stop` not in the window and newer than every answer: the new model's fit

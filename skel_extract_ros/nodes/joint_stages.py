@@ -239,8 +239,10 @@ class JointStages:
             return
         tracker = LiveJointTracker(model, self.params, self.live_sweeps)
         camera = CameraTracker(ArticulatedTracker(model, self.params, iterations=self.live_iterations), tracker)
-        window = [(stamp, header, *self._registered_outputs(model, tracker, registered, rotations, translations))
-                  for stamp, (header, registered, _), rotations, translations in zip(stamps, frames, *window_pose)]
+        window = [(stamp, header, *self._registered_outputs(model, tracker, registered, rotations, translations,
+                                                            observed))
+                  for stamp, (header, registered, observed), rotations, translations
+                  in zip(stamps, frames, *window_pose)]
         # the skeleton's confidence: each joint's median over the frames it was learned on
         confidence = np.median([frame[-1] for frame in window], axis=0)
         with self._lock:
@@ -290,24 +292,25 @@ class JointStages:
 
     def _publish_tracked(self, tracker, described, frames: list) -> None:
         """Publish tracker joints for [(stamp, (header, registered (M, 3)))] in order."""
-        for _stamp, (header, registered) in frames:
+        for stamp, (header, registered) in frames:
             started = time.perf_counter()
             rotations, translations = tracker.fit(registered)
             self.live_ms.append(1000.0 * (time.perf_counter() - started))
-            self._publish_registered(described, tracker, header, registered, rotations, translations)
-
-    def _publish_registered(self, described, tracker, header, registered, rotations, translations) -> None:
-        """Publish a registered frame's joints (see _registered_outputs)."""
-        self._publish_joints(described, header,
-                             *self._registered_outputs(described.model, tracker, registered, rotations, translations))
+            with self._lock:
+                paired = self.buffer.get(stamp)
+            self._publish_joints(described, header, *self._registered_outputs(
+                described.model, tracker, registered, rotations, translations,
+                None if paired is None else paired[2]))
 
     @staticmethod
-    def _registered_outputs(model, tracker, registered, rotations, translations) -> tuple:
+    def _registered_outputs(model, tracker, registered, rotations, translations, observed) -> tuple:
         """(positions (J, 3) m, twist hints (B, 3, 3), confidence (J,)) of a registered frame
         (M, 3) from the model's bone transforms at it (rotations (B, 3, 3), translations
-        (B, 3)): twist and confidence from its registered points."""
+        (B, 3)): twist and confidence from its registered points, the confidence also from
+        the silhouette of the frame's observed points (N, 3) when its filtered_points came
+        (None: not)."""
         return (tracker.joints_of(rotations, translations), registered_hints(model, registered),
-                tracker.confidence(rotations, translations, registered, corresponding=True))
+                tracker.confidence(rotations, translations, registered, True, observed))
 
     def _live_camera_frame(self, item) -> None:
         """Joints for one camera frame (live_frames camera), on the live Worker."""

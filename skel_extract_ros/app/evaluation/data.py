@@ -70,13 +70,15 @@ class GroundTruth:
 
 @dataclass
 class PredictedSkeleton:
-    """A skeleton.json: stamps (F,) s, positions (F, J, 3) m."""
+    """A skeleton.json: stamps (F,) s, positions (F, J, 3) m; confidence (F, J) in [0, 1],
+    NaN where a frame gives none (None: no frame does)."""
 
     joint_names: list
     parents: list
     stamps: np.ndarray
     positions: np.ndarray
     frame_id: str = ''
+    confidence: np.ndarray | None = None
 
     @classmethod
     def load(cls, path) -> 'PredictedSkeleton':
@@ -107,7 +109,19 @@ class PredictedSkeleton:
         if positions.ndim != 3 or positions.shape[1:] != (n_joints, 3):
             raise EvaluationError(f'{path}: frame positions must be {n_joints} x 3, got '
                                   f'{positions.shape[1:]}')
-        return cls(list(names), list(doc['parents']), stamps, positions, str(doc.get('frame_id', '')))
+        return cls(list(names), list(doc['parents']), stamps, positions, str(doc.get('frame_id', '')),
+                   _frame_confidence(frames, n_joints))
+
+
+def _frame_confidence(frames: list, n_joints: int) -> np.ndarray | None:
+    """(F, J) each frame's `confidence`, NaN where a frame has none or a malformed one (the
+    field is optional: a prediction without it is scored without the confidence's rank)."""
+    confidence = np.full((len(frames), n_joints), np.nan)
+    for index, frame in enumerate(frames):
+        values = frame.get('confidence')
+        if isinstance(values, list) and len(values) == n_joints:
+            confidence[index] = [np.nan if v is None else float(v) for v in values]
+    return None if np.isnan(confidence).all() else confidence
 
 
 def match_frames(pred_stamps: np.ndarray, gt_stamps: np.ndarray, tolerance_s: float | None = None):

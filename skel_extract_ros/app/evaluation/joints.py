@@ -60,6 +60,9 @@ class JointReport:
     n_repeated_frames: int = 0
     motion_skill: float = float('nan')
     nonfinite_fraction: float = 0.0
+    confidence_auc: float = float('nan')
+    n_confident_answers: int = 0
+    n_far_answers: int = 0
     missed_articulated: list = field(default_factory=list)
     missed_moving: list = field(default_factory=list)
     per_joint: list = field(default_factory=list)
@@ -118,6 +121,24 @@ def scored_window(pred: PredictedSkeleton, gt: GroundTruth, start_stamp: float |
     first_of_each = np.unique(gt_idx, return_index=True)[1]
     slot[gt_idx[first_of_each]] = pred_idx[first_of_each]
     return window, slot[window], len(gt_idx) - len(first_of_each), start
+
+
+def confidence_auc(confidence: np.ndarray, errors: np.ndarray, threshold: float) -> tuple:
+    """How well a published confidence ranks a frame's answers: over the answers (K,) with
+    a finite confidence (K,) and error (K,) m, the probability that an answer within
+    `threshold` has a higher confidence than one beyond it (ties count half; the Mann-Whitney
+    U over both counts): 1 = every far answer flagged below every near one, 0.5 = no
+    information. Returns (auc, near answers, far answers); auc NaN when either is empty."""
+    from scipy.stats import rankdata
+
+    usable = np.isfinite(confidence) & np.isfinite(errors)
+    confidence, errors = confidence[usable], errors[usable]
+    near = errors <= threshold
+    n_near, n_far = int(near.sum()), int((~near).sum())
+    if n_near == 0 or n_far == 0:
+        return float('nan'), n_near, n_far
+    ranks = rankdata(confidence)
+    return float((ranks[near].sum() - n_near * (n_near + 1) / 2) / (n_near * n_far)), n_near, n_far
 
 
 def limb_directions(truth: np.ndarray, parents) -> np.ndarray:
@@ -222,6 +243,12 @@ def evaluate_joints(pred: PredictedSkeleton, gt: GroundTruth, threshold_m: float
     error = np.where(match >= 0, cost[np.maximum(match, 0), np.arange(n_gt)], np.nan)   # (G,)
     within = {radius: (match >= 0) & (error <= radius * scale) for radius in RECALL_RADII_M}
     tracks = (match >= 0) & (error < static_error)
+    if pred.confidence is not None and len(rows):
+        confidence = np.full((len(window), n_pred), np.nan)
+        confidence[answer >= 0] = pred.confidence[answer[answer >= 0]]
+        answer_error = np.linalg.norm(predicted[:, rows] - truth[:, cols], axis=-1)     # (W, matched)
+        report.confidence_auc, report.n_confident_answers, report.n_far_answers = confidence_auc(
+            confidence[:, rows].ravel(), answer_error.ravel(), threshold)
     report.precision = len(rows) / n_pred if n_pred else 0.0
     report.n_matched = len(rows)
     report.recall = len(rows) / n_gt

@@ -31,6 +31,10 @@ def score_lines(result: dict, per_joint: bool) -> list:
                      f'tracking skill {_ratio(j["tracking_skill"])} (0 = holding each still)')
         lines.append(f'  error {_cm(j["mean_error_m"])} cm, offset removed {_cm(j["normalized_error_m"])} cm; '
                      f'motion skill {_ratio(j["motion_skill"])}; non-finite {100 * j["nonfinite_fraction"]:.1f} %')
+        if j.get('n_confident_answers', 0) or j.get('n_far_answers', 0):
+            lines.append(f'  confidence: ranks the answers within the threshold above the '
+                         f'{j["n_far_answers"]} beyond it with probability {_ratio(j["confidence_auc"])} '
+                         f'(0.5 = no information)')
         if j['missed_articulated']:
             lines.append(f'  bending joints not found: {", ".join(j["missed_articulated"])}')
         if j['missed_moving']:
