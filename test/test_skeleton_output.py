@@ -1,5 +1,6 @@
 """The joint node's per-frame outputs without a graph: markers, velocities, confidence."""
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 from visualization_msgs.msg import Marker
 
@@ -108,3 +109,31 @@ def test_the_share_outside_the_silhouette_is_counted_per_bone():
     np.testing.assert_allclose(shares, [0.0, 1.0, 0.0])
     np.testing.assert_allclose(joint_confidence([-1, 0, 1], [0] * 20 + [1] * 20 + [2] * 20, np.zeros(60), shares),
                                [1.0, 0.0, 0.0])
+
+
+def test_a_residual_is_judged_against_the_skeletons_own_noise():
+    from skel_extract_ros.core.confidence import NOISE_MULTIPLE, half_residual
+    rest, registered, labels, _, _ = two_bone_sequence(n_frames=4)
+    # a hand-sized fit: the skeleton fitted its learning frames to 2 mm
+    small = SkeletonModel(rest, labels, np.array([-1, 0]), np.array([[-0.15, 0, 0], [0.0, 0, 0]]),
+                          labels[:, None], np.ones((len(rest), 1)), noise_m=0.002)
+    tracker = LiveJointTracker(small)
+    rotations, translations = tracker.fit(registered[2])
+    off = registered[2].copy()
+    off[labels == 1] += [0.0, NOISE_MULTIPLE * 0.002, 0.0]         # the child bone off by its half
+    np.testing.assert_allclose(tracker.confidence(rotations, translations, off, corresponding=True), [1.0, 0.5],
+                               atol=1e-3)
+    # without a known noise (Step 2's provisional skeleton) the same 4 mm is nothing
+    unknown = LiveJointTracker(SkeletonModel(rest, labels, small.parents, small.rest_joints, small.influences,
+                                             small.weights))
+    assert unknown.confidence(rotations, translations, off, corresponding=True)[1] > 0.97
+    assert half_residual(None) == HALF_RESIDUAL and half_residual(0.01) == NOISE_MULTIPLE * 0.01
+
+
+def test_alg2_gives_the_skeleton_the_noise_of_its_fit():
+    from skel_extract_ros.core.joints import JointEstimate
+    tau = np.array([1e-4, 4e-4, 9e-4])                       # per coordinate, m^2
+    estimate = JointEstimate(np.zeros((3, 1), int), np.ones((3, 1)), np.tile(np.eye(3), (3, 1, 1, 1)),
+                             np.zeros((3, 1, 3)), np.zeros((1, 3)), np.array([-1]), tau)
+    model = estimate.model(np.zeros((3, 3)), np.zeros(3, int))
+    assert model.noise_m == pytest.approx(np.sqrt(3 * 4e-4))    # the median frame's RMS distance

@@ -17,18 +17,24 @@ publishes joints has at hand:
   observation always has a model point).
 Bone b gets
 
-    c_b = 1 / (1 + mean_b(r^2) / HALF_RESIDUAL^2) * min(1, n_b / MIN_SAMPLES)
+    c_b = 1 / (1 + mean_b(r^2) / h^2) * min(1, n_b / MIN_SAMPLES)
 
-(1 when its points sit on the data, 1/2 at an RMS residual of HALF_RESIDUAL, and 0 for a
-bone the frame did not see at all: its joint then comes from the joint term and the
-previous pose only), times 1 - o_b when the frame's observed points are at hand, o_b the
-share of bone b's posed points that lie outside the subject's silhouette (no observed ray
-passes near theirs: `outside_silhouette`). The camera saw nothing where those points are,
-so the pose there is wrong whatever the residual says: a registration that lost a limb
-carries it into empty space with its points, and fits it as well as any other (the
-residual of a registered frame compares the pose with the registration, not with the
-camera). A bone hidden behind the body stays inside the silhouette and keeps its
-confidence: the camera cannot tell.
+(1 when its points sit on the data, 1/2 at an RMS residual of h, and 0 for a bone the frame
+did not see at all: its joint then comes from the joint term and the previous pose only).
+h is NOISE_MULTIPLE times the skeleton's own noise, the RMS distance of the observed points
+to its fit on the frames it was learned on (SkeletonModel.noise_m, from Alg. 2's tau): what
+counts as off is measured on the subject and the camera at hand, so a hand's millimetres
+and a cow's centimetres are judged alike (HALF_RESIDUAL where the noise is unknown: Step 2's
+provisional skeleton).
+
+c_b is multiplied by 1 - o_b when the frame's observed points are at hand, o_b the share of
+bone b's posed points that lie outside the subject's silhouette (no observed ray passes
+near theirs: `outside_silhouette`). The camera saw nothing where those points are, so the
+pose there is wrong whatever the residual says: a registration that lost a limb carries it
+into empty space with its points, and fits it as well as any other (the residual of a
+registered frame compares the pose with the registration, not with the camera). A bone
+hidden behind the body stays inside the silhouette and keeps its confidence: the camera
+cannot tell.
 
 Joint b, which sits between bone b and its parent bone, gets the smaller of the two bones'
 confidences (the root joint, the root bone's centre, its bone's). It says how well the
@@ -41,17 +47,31 @@ import numpy as np
 
 from .registration.visibility import ObservedView
 
-# the RMS residual (m) at which a bone's confidence is one half: about twice the spread of
-# the registered points around the posed model on the sample bag's good frames
+# a bone's confidence is one half at an RMS residual of this many times the skeleton's own
+# noise (SkeletonModel.noise_m); chosen on the real-motion bench's tuning half and the
+# built-in hand (bench/HISTORY.md, "The joints' confidence from the silhouette")
+NOISE_MULTIPLE = 1.5
+# the RMS residual (m) of confidence 1/2 where the skeleton's noise is unknown: about twice
+# the spread of the registered points around the posed model on the sample bag's good frames
 HALF_RESIDUAL = 0.03
 # a bone with fewer samples than this in a frame is partly seen: its confidence shrinks in
 # proportion (0 samples: 0)
 MIN_SAMPLES = 10
 
 
-def bone_confidence(n_bones: int, bone_of_sample: np.ndarray, squared_residuals: np.ndarray) -> np.ndarray:
+def half_residual(noise_m: float | None) -> float:
+    """The RMS residual (m) at which a bone's confidence is one half, for a skeleton whose
+    fit noise is noise_m (m; None: not known)."""
+    if noise_m is None or not np.isfinite(noise_m) or noise_m <= 0:
+        return HALF_RESIDUAL
+    return NOISE_MULTIPLE * float(noise_m)
+
+
+def bone_confidence(n_bones: int, bone_of_sample: np.ndarray, squared_residuals: np.ndarray,
+                    half: float = HALF_RESIDUAL) -> np.ndarray:
     """(B,) confidence of each bone from samples: bone_of_sample (K,) bone index per sample,
-    squared_residuals (K,) m^2 (non-finite samples are ignored)."""
+    squared_residuals (K,) m^2 (non-finite samples are ignored); half (m): the RMS residual
+    of confidence 1/2 (`half_residual`)."""
     bone_of_sample = np.asarray(bone_of_sample, dtype=np.int64).reshape(-1)
     squared = np.asarray(squared_residuals, dtype=np.float64).reshape(-1)
     finite = np.isfinite(squared)
@@ -59,7 +79,7 @@ def bone_confidence(n_bones: int, bone_of_sample: np.ndarray, squared_residuals:
     counts = np.bincount(bone_of_sample, minlength=n_bones)[:n_bones].astype(np.float64)
     sums = np.bincount(bone_of_sample, weights=squared, minlength=n_bones)[:n_bones]
     mean_squared = sums / np.maximum(counts, 1.0)
-    fit = 1.0 / (1.0 + mean_squared / HALF_RESIDUAL ** 2)
+    fit = 1.0 / (1.0 + mean_squared / half ** 2)
     return fit * np.minimum(1.0, counts / MIN_SAMPLES)
 
 
@@ -74,13 +94,13 @@ def outside_silhouette(n_bones: int, bone_of_point: np.ndarray, posed: np.ndarra
 
 
 def joint_confidence(parents, bone_of_sample: np.ndarray, squared_residuals: np.ndarray,
-                     bone_outside: np.ndarray | None = None) -> np.ndarray:
+                     bone_outside: np.ndarray | None = None, half: float = HALF_RESIDUAL) -> np.ndarray:
     """(J,) confidence in [0, 1] of each joint of a frame (joint b: between bone b and its
     parent bone; parents (J,), -1 for the root). Samples as in bone_confidence;
     bone_outside (B,): each bone's share of posed points outside the silhouette
-    (`outside_silhouette`; None: not known)."""
+    (`outside_silhouette`; None: not known); half as in bone_confidence."""
     parents = np.asarray(parents, dtype=np.int64)
-    bones = bone_confidence(len(parents), bone_of_sample, squared_residuals)
+    bones = bone_confidence(len(parents), bone_of_sample, squared_residuals, half)
     if bone_outside is not None:
         bones = bones * (1.0 - np.clip(bone_outside, 0.0, 1.0))
     return np.where(parents >= 0, np.minimum(bones, bones[np.maximum(parents, 0)]), bones)

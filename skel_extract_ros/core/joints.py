@@ -108,8 +108,10 @@ class JointEstimate:
     def model(self, rest: np.ndarray, labels: np.ndarray, joint_ids: np.ndarray | None = None) -> SkeletonModel:
         """The learned skeleton: these joints and LBS weights on rest (M, 3) with Step 2's
         labels (M,), the joints named by joint_ids (B,) (None: 0..B-1)."""
+        # Eq. 7's tau is a variance per coordinate: the RMS distance is sqrt(3 tau)
+        noise = float(np.sqrt(3.0 * np.median(self.tau))) if len(self.tau) else None
         return SkeletonModel(rest, labels, self.parents, self.joints, self.influences, self.weights, joint_ids,
-                             self.pivot)
+                             self.pivot, noise)
 
 
 _SUPPORTS = {k: [s for r in range(1, k + 1) for s in itertools.combinations(range(k), r)] for k in range(1, 5)}

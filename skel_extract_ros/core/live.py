@@ -48,7 +48,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .articulated import BoneBlocks
-from .confidence import joint_confidence, outside_silhouette
+from .confidence import half_residual, joint_confidence, outside_silhouette
 from .gmm import CandidateCache
 from .joints import JointParams
 from .point_sets import finite_rows, median_spacing
@@ -99,6 +99,7 @@ class _BoneBlocks:
         self._parents = np.asarray(model.parents)
         self._joints = np.asarray(model.rest_joints, dtype=np.float64)
         self._alpha = self.params.zeta * len(rest)
+        self._half_residual = half_residual(model.noise_m)
         self._blocks = BoneBlocks(rest, influences, weights, self._parents)
 
     @property
@@ -172,14 +173,15 @@ class _BoneBlocks:
                 outside = outside_silhouette(self.n_bones, self._dominant, posed, view)
         if corresponding:
             squared = np.sum((points[self._subset] - posed) ** 2, axis=1)
-            return joint_confidence(self._parents, self._dominant, squared, outside)
+            return joint_confidence(self._parents, self._dominant, squared, outside, self._half_residual)
         points = points[finite_rows(points)]
         # a strided subset, as the fit uses: the mean residual per bone needs no more
         points = points[::max(1, -(-len(points) // CONFIDENCE_SAMPLES))]
         if len(points) == 0:
             return np.zeros(self.n_bones)
         distance, nearest = cKDTree(posed).query(points)
-        return joint_confidence(self._parents, self._dominant[nearest], distance ** 2, outside)
+        return joint_confidence(self._parents, self._dominant[nearest], distance ** 2, outside,
+                                self._half_residual)
 
 
 class LiveJointTracker(_BoneBlocks):

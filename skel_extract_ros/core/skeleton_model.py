@@ -18,7 +18,9 @@ class SkeletonModel:
     rest frame (the cloud frame of the rest-pose frame); LBS influences/weights (M, k);
     joint_ids (B,): stable ids that name the joints across updates of a growing skeleton
     (core.growth; None: 0..B-1); pivot: how far the motion it was learned on fixed each
-    joint (None: not known)."""
+    joint (None: not known); noise_m: the RMS distance (m) of the observed points to the
+    skeleton's fit on the frames it was learned on (core.confidence judges a frame's fit
+    against it; None: not known)."""
 
     rest_points: np.ndarray
     labels: np.ndarray
@@ -28,6 +30,7 @@ class SkeletonModel:
     weights: np.ndarray
     joint_ids: np.ndarray | None = None
     pivot: PivotEvidence | None = None
+    noise_m: float | None = None
 
     @property
     def n_joints(self) -> int:
