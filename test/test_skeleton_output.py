@@ -137,3 +137,13 @@ def test_alg2_gives_the_skeleton_the_noise_of_its_fit():
                              np.zeros((3, 1, 3)), np.zeros((1, 3)), np.array([-1]), tau)
     model = estimate.model(np.zeros((3, 3)), np.zeros(3, int))
     assert model.noise_m == pytest.approx(np.sqrt(3 * 4e-4))    # the median frame's RMS distance
+
+
+def test_the_description_carries_the_noise_the_confidence_is_judged_against():
+    from skel_extract_ros.codecs.messages import description_document
+    rest, _, labels, _, _ = two_bone_sequence(n_frames=2)
+    model = SkeletonModel(rest, labels, np.array([-1, 0]), np.zeros((2, 3)), labels[:, None],
+                          np.ones((len(rest), 1)), noise_m=0.0123456)
+    assert description_document(model, 'camera', [1, 2])['noise_m'] == 0.01235
+    provisional = SkeletonModel(rest, labels, model.parents, model.rest_joints, model.influences, model.weights)
+    assert description_document(provisional, 'camera', [1, 2], provisional=True)['noise_m'] is None

@@ -138,15 +138,17 @@ def description_document(model: SkeletonModel, frame_id: str, window_stamps_ns, 
     / moved), whether it is provisional (Step 2's skeleton, tracked while Alg. 2 runs;
     the next description refines it under the same joint names), the per-joint
     confidence (J,) in [0, 1] of the frames it was learned on (core/confidence.py; None:
-    not given) and how far the motion fixed each joint's pivot (the model's pivot evidence,
-    core.skeleton_model.pivot_document; None: not known)."""
+    not given), how far the motion fixed each joint's pivot (the model's pivot evidence,
+    core.skeleton_model.pivot_document; None: not known) and the skeleton's noise (m, the
+    scale its per-frame confidence judges a fit against; None: not known)."""
     return {'version': int(version), 'frame_id': frame_id, 'joint_names': model.joint_names,
             'parents': [int(p) for p in model.parents],
             'rest_positions': np.round(model.rest_joints, 6).tolist(),
             'window_stamps_ns': [int(s) for s in window_stamps_ns],
             'changes': changes or {}, 'provisional': bool(provisional),
             'confidence': None if confidence is None else np.round(np.asarray(confidence, dtype=float), 4).tolist(),
-            'pivot': pivot_document(model.pivot)}
+            'pivot': pivot_document(model.pivot),
+            'noise_m': None if model.noise_m is None else round(float(model.noise_m), 5)}
 
 
 def pose_array(positions: np.ndarray, header: Header, quaternions: np.ndarray | None = None) -> PoseArray:
