@@ -83,7 +83,8 @@ def bone_confidence(n_bones: int, bone_of_sample: np.ndarray, squared_residuals:
     return fit * np.minimum(1.0, counts / MIN_SAMPLES)
 
 
-def outside_silhouette(n_bones: int, bone_of_point: np.ndarray, posed: np.ndarray, view: ObservedView) -> np.ndarray:
+def outside_silhouette(n_bones: int, bone_of_point: np.ndarray, posed: np.ndarray,
+                       view: ObservedView) -> np.ndarray:
     """(B,) share of each bone's posed points (M, 3) m, bone_of_point (M,), that lie outside
     the silhouette of the frame's observed view (no observed ray within the view's
     SILHOUETTE_SPACINGS ray spacings of theirs); 0 for a bone without points."""

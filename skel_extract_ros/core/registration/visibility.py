@@ -51,13 +51,18 @@ class ObservedView:
         in_front = np.where(found, self.ranges[np.where(found, nearest, 0)], np.inf)
         return (in_front.min(axis=1) >= ranges - margin)
 
+    def _nearest_ray(self, points: np.ndarray) -> tuple:
+        """(ranges (M,) m, angles (M,) rad to the nearest observed ray, its index (M,)) of
+        points (M, 3) m."""
+        ranges, directions = _rays(points)
+        # chord between unit vectors: the angle (rad) for the small angles that matter here
+        angle, nearest = self.tree.query(directions)
+        return ranges, angle, nearest
+
     def outside(self, points: np.ndarray) -> np.ndarray:
         """(M,) bool: no observed ray passes within SILHOUETTE_SPACINGS ray spacings of the
         ray of each point (M, 3) m: the camera saw nothing there."""
-        _, directions = _rays(points)
-        # chord between unit vectors: the angle (rad) for the small angles that matter here
-        angle, _ = self.tree.query(directions)
-        return angle > SILHOUETTE_SPACINGS * self.ray_spacing
+        return self._nearest_ray(points)[1] > SILHOUETTE_SPACINGS * self.ray_spacing
 
     def silhouette_targets(self, points: np.ndarray, reach: float) -> tuple:
         """Where the silhouette term (RegistrationParams.free_space) pulls points (M, 3) m:
@@ -66,8 +71,6 @@ class ObservedView:
         (m) of the point itself, across its ray (farther ones are a lost part's, which the
         nearest ray would hand to whatever limb is next to it); its target lies on the
         nearest observed ray, at the point's own range."""
-        ranges, directions = _rays(points)
-        # chord between unit vectors: the angle (rad) for the small angles that matter here
-        angle, nearest = self.tree.query(directions)
+        ranges, angle, nearest = self._nearest_ray(points)
         outside = (angle > SILHOUETTE_SPACINGS * self.ray_spacing) & (angle * ranges <= reach)
         return outside, self.directions[nearest] * ranges[:, None]
