@@ -147,3 +147,19 @@ def test_the_description_carries_the_noise_the_confidence_is_judged_against():
     assert description_document(model, 'camera', [1, 2])['noise_m'] == 0.01235
     provisional = SkeletonModel(rest, labels, model.parents, model.rest_joints, model.influences, model.weights)
     assert description_document(provisional, 'camera', [1, 2], provisional=True)['noise_m'] is None
+
+
+def test_a_bone_that_no_point_follows_most_keeps_its_share_of_them():
+    # 60 points: bone 0's, and 30 that follow bone 1 by 0.6 and bone 2 by 0.4 (bone 2 is no
+    # point's dominant bone, as a short bone between two longer ones can be)
+    influences = np.array([[0, 0]] * 30 + [[1, 2]] * 30)
+    weights = np.array([[1.0, 0.0]] * 30 + [[0.6, 0.4]] * 30)
+    squared = np.zeros(60)
+    np.testing.assert_allclose(joint_confidence([-1, 0, 1], influences, squared, None, HALF_RESIDUAL, weights),
+                               [1.0, 1.0, 1.0])
+    # counted by the dominant bone alone, bone 2 would have no sample and its joint 0
+    dominant = influences[np.arange(60), np.argmax(weights, axis=1)]
+    assert joint_confidence([-1, 0, 1], dominant, squared)[2] == 0.0
+    # its points 3 cm off count for it by their weight
+    squared[30:] = HALF_RESIDUAL ** 2
+    np.testing.assert_allclose(bone_confidence(3, influences, squared, HALF_RESIDUAL, weights), [1.0, 0.5, 0.5])

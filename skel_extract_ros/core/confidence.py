@@ -11,16 +11,19 @@ publishes joints has at hand:
 - a frame with registered points (the window, `live_frames registered`, a camera frame
   whose own registration is in): sample m is the model point m, its residual the
   distance between the registered point and the LBS-posed model point (they correspond);
-- a camera frame fitted to its observed points: sample n is an observed point, its bone
-  the bone of the nearest posed model point, its residual the distance to it (the camera
+- a camera frame fitted to its observed points: sample n is an observed point, its bones
+  those of the nearest posed model point, its residual the distance to it (the camera
   sees one side of the body: a model point on the far side has no observation, an
   observation always has a model point).
-Bone b gets
+A sample counts towards each bone its model point follows, by its LBS weight w (Eq. 8): a
+short bone between two longer ones may be no point's main bone and still has its share of
+points. Bone b gets
 
     c_b = 1 / (1 + mean_b(r^2) / h^2) * min(1, n_b / MIN_SAMPLES)
 
-(1 when its points sit on the data, 1/2 at an RMS residual of h, and 0 for a bone the frame
-did not see at all: its joint then comes from the joint term and the previous pose only).
+(mean_b and n_b weighted by w; 1 when its points sit on the data, 1/2 at an RMS residual
+of h, and 0 for a bone the frame did not see at all: its joint then comes from the joint
+term and the previous pose only).
 h is NOISE_MULTIPLE times the skeleton's own noise, the RMS distance of the observed points
 to its fit on the frames it was learned on (SkeletonModel.noise_m, from Alg. 2's tau): what
 counts as off is measured on the subject and the camera at hand, so a hand's millimetres
@@ -67,41 +70,51 @@ def half_residual(noise_m: float | None) -> float:
     return NOISE_MULTIPLE * float(noise_m)
 
 
+def _per_bone(n_bones: int, bone_of_sample, values, sample_weights) -> tuple:
+    """(sum of weight x value, sum of weight) per bone (B,), (B,): samples (K,) or, with
+    their LBS weights (K, k), a sample counted towards each bone it follows by its weight."""
+    bones = np.asarray(bone_of_sample, dtype=np.int64)
+    values = np.broadcast_to(np.asarray(values, dtype=np.float64).reshape(len(bones), *([1] * (bones.ndim - 1))),
+                             bones.shape)
+    weights = np.ones(bones.shape) if sample_weights is None else np.asarray(sample_weights, dtype=np.float64)
+    weights = np.where(np.isfinite(values), weights, 0.0)
+    bones, values, weights = bones.ravel(), np.where(np.isfinite(values), values, 0.0).ravel(), weights.ravel()
+    return (np.bincount(bones, weights=weights * values, minlength=n_bones)[:n_bones],
+            np.bincount(bones, weights=weights, minlength=n_bones)[:n_bones])
+
+
 def bone_confidence(n_bones: int, bone_of_sample: np.ndarray, squared_residuals: np.ndarray,
-                    half: float = HALF_RESIDUAL) -> np.ndarray:
+                    half: float = HALF_RESIDUAL, sample_weights: np.ndarray | None = None) -> np.ndarray:
     """(B,) confidence of each bone from samples: bone_of_sample (K,) bone index per sample,
+    or (K, k) the bones it follows with their LBS weights sample_weights (K, k), so that a
+    bone whose points all follow a neighbour more than it still has its share of them;
     squared_residuals (K,) m^2 (non-finite samples are ignored); half (m): the RMS residual
     of confidence 1/2 (`half_residual`)."""
-    bone_of_sample = np.asarray(bone_of_sample, dtype=np.int64).reshape(-1)
-    squared = np.asarray(squared_residuals, dtype=np.float64).reshape(-1)
-    finite = np.isfinite(squared)
-    bone_of_sample, squared = bone_of_sample[finite], squared[finite]
-    counts = np.bincount(bone_of_sample, minlength=n_bones)[:n_bones].astype(np.float64)
-    sums = np.bincount(bone_of_sample, weights=squared, minlength=n_bones)[:n_bones]
-    mean_squared = sums / np.maximum(counts, 1.0)
+    sums, counts = _per_bone(n_bones, bone_of_sample, squared_residuals, sample_weights)
+    mean_squared = sums / np.maximum(counts, 1e-12)
     fit = 1.0 / (1.0 + mean_squared / half ** 2)
     return fit * np.minimum(1.0, counts / MIN_SAMPLES)
 
 
-def outside_silhouette(n_bones: int, bone_of_point: np.ndarray, posed: np.ndarray,
-                       view: ObservedView) -> np.ndarray:
-    """(B,) share of each bone's posed points (M, 3) m, bone_of_point (M,), that lie outside
-    the silhouette of the frame's observed view (no observed ray within the view's
-    SILHOUETTE_SPACINGS ray spacings of theirs); 0 for a bone without points."""
-    outside = view.outside(posed)
-    bone_of_point = np.asarray(bone_of_point, dtype=np.int64).reshape(-1)
-    counts = np.bincount(bone_of_point, minlength=n_bones)[:n_bones]
-    return np.bincount(bone_of_point, weights=outside, minlength=n_bones)[:n_bones] / np.maximum(counts, 1)
+def outside_silhouette(n_bones: int, bone_of_point: np.ndarray, posed: np.ndarray, view: ObservedView,
+                       point_weights: np.ndarray | None = None) -> np.ndarray:
+    """(B,) share of each bone's posed points (M, 3) m that lie outside the silhouette of the
+    frame's observed view (no observed ray within the view's SILHOUETTE_SPACINGS ray
+    spacings of theirs); bone_of_point (M,) or (M, k) with LBS weights point_weights (M, k),
+    as in bone_confidence; 0 for a bone without points."""
+    outside, counts = _per_bone(n_bones, bone_of_point, view.outside(posed), point_weights)
+    return outside / np.maximum(counts, 1e-12)
 
 
 def joint_confidence(parents, bone_of_sample: np.ndarray, squared_residuals: np.ndarray,
-                     bone_outside: np.ndarray | None = None, half: float = HALF_RESIDUAL) -> np.ndarray:
+                     bone_outside: np.ndarray | None = None, half: float = HALF_RESIDUAL,
+                     sample_weights: np.ndarray | None = None) -> np.ndarray:
     """(J,) confidence in [0, 1] of each joint of a frame (joint b: between bone b and its
     parent bone; parents (J,), -1 for the root). Samples as in bone_confidence;
     bone_outside (B,): each bone's share of posed points outside the silhouette
     (`outside_silhouette`; None: not known); half as in bone_confidence."""
     parents = np.asarray(parents, dtype=np.int64)
-    bones = bone_confidence(len(parents), bone_of_sample, squared_residuals, half)
+    bones = bone_confidence(len(parents), bone_of_sample, squared_residuals, half, sample_weights)
     if bone_outside is not None:
         bones = bones * (1.0 - np.clip(bone_outside, 0.0, 1.0))
     return np.where(parents >= 0, np.minimum(bones, bones[np.maximum(parents, 0)]), bones)

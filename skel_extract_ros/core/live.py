@@ -101,6 +101,9 @@ class _BoneBlocks:
         self._alpha = self.params.zeta * len(rest)
         self._half_residual = half_residual(model.noise_m)
         self._blocks = BoneBlocks(rest, influences, weights, self._parents)
+        # the confidence counts each point towards every bone it follows, by its weight: a
+        # bone whose points all follow a neighbour more still has its share of them
+        self._influences, self._weights = influences, weights
 
     @property
     def n_bones(self) -> int:
@@ -170,18 +173,19 @@ class _BoneBlocks:
             observed = observed[finite_rows(observed)]
             view = ObservedView(observed) if len(observed) >= 2 else None
             if view is not None and view.ray_spacing > 0:     # a silhouette of more than one ray
-                outside = outside_silhouette(self.n_bones, self._dominant, posed, view)
+                outside = outside_silhouette(self.n_bones, self._influences, posed, view, self._weights)
         if corresponding:
             squared = np.sum((points[self._subset] - posed) ** 2, axis=1)
-            return joint_confidence(self._parents, self._dominant, squared, outside, self._half_residual)
+            return joint_confidence(self._parents, self._influences, squared, outside, self._half_residual,
+                                    self._weights)
         points = points[finite_rows(points)]
         # a strided subset, as the fit uses: the mean residual per bone needs no more
         points = points[::max(1, -(-len(points) // CONFIDENCE_SAMPLES))]
         if len(points) == 0:
             return np.zeros(self.n_bones)
         distance, nearest = cKDTree(posed).query(points)
-        return joint_confidence(self._parents, self._dominant[nearest], distance ** 2, outside,
-                                self._half_residual)
+        return joint_confidence(self._parents, self._influences[nearest], distance ** 2, outside,
+                                self._half_residual, self._weights[nearest])
 
 
 class LiveJointTracker(_BoneBlocks):
