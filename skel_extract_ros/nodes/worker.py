@@ -26,6 +26,7 @@ from typing import Callable
 # short; past this the oldest is dropped (counted, and the node says so).
 LOSSLESS_CAPACITY = 100
 
+
 def lower_priority(task_id: int, niceness: int, idle_class: bool = False) -> None:
     """Add `niceness` to the nice value of thread or process `task_id` (Linux keeps one per
     thread; threads it starts later inherit it) and, with `idle_class`, put it in the idle

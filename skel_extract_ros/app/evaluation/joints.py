@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.stats import rankdata
 
 from ...core.matching import gated_assignment
 from ...core.rigid import turn_spans
@@ -129,8 +130,6 @@ def confidence_auc(confidence: np.ndarray, errors: np.ndarray, threshold: float)
     `threshold` has a higher confidence than one beyond it (ties count half; the Mann-Whitney
     U over both counts): 1 = every far answer flagged below every near one, 0.5 = no
     information. Returns (auc, near answers, far answers); auc NaN when either is empty."""
-    from scipy.stats import rankdata
-
     usable = np.isfinite(confidence) & np.isfinite(errors)
     confidence, errors = confidence[usable], errors[usable]
     near = errors <= threshold
