@@ -630,6 +630,9 @@ def test_joint_estimation_node_tracks_the_step2_skeleton_while_alg2_runs(ros, he
     # the first description: every joint is new
     assert provisional['provisional'] is True and provisional['changes'] == {
         'added': provisional['joint_names'], 'removed': [], 'reparented': [], 'moved': []}
+    # judged against its own bones' fit (exact here: Alg. 2's least variance, 1.7 mm), not a
+    # fixed 3 cm that would call any pose of these 4 cm-wide bones right
+    assert provisional['noise_m'] == pytest.approx(np.sqrt(3 * node.stages.params.min_tau), abs=1e-5)
     assert node.stages.estimating and 'tracking 2 joints meanwhile' in node._diagnostics()[1]
     child = provisional['parents'].index(0)
     # Step 2's joint (the joint solve on the segments' rigid motion) on the window frames

@@ -139,6 +139,20 @@ def test_alg2_gives_the_skeleton_the_noise_of_its_fit():
     assert model.noise_m == pytest.approx(np.sqrt(3 * 4e-4))    # the median frame's RMS distance
 
 
+def test_step2s_skeleton_is_judged_against_the_noise_of_its_bones_fits():
+    """A provisional skeleton has no Alg. 2 tau: its noise is the RMS distance of each
+    frame's observed points to the nearest posed point, the median over the frames."""
+    from skel_extract_ros.core.confidence import fit_noise
+    grid = np.stack(np.meshgrid(np.linspace(-0.2, 0.2, 21), np.linspace(-0.2, 0.2, 21)), -1).reshape(-1, 2)
+    wall = np.column_stack([grid, np.full(len(grid), 2.0)])          # posed points 2 cm apart, 2 m away
+    posed = np.stack([wall] * 4)
+    # the observed surface 1, 3 and 4 mm behind the posed one (NaN rows, as a camera gives,
+    # are not points), and a frame the camera saw nothing of
+    observed = [np.vstack([wall + [0, 0, depth], [[np.nan] * 3]]) for depth in (0.001, 0.003, 0.004)]
+    assert fit_noise(posed, observed + [np.empty((0, 3))]) == pytest.approx(0.003)
+    assert fit_noise(posed, [np.empty((0, 3))] * 4) is None
+
+
 def test_the_description_carries_the_noise_the_confidence_is_judged_against():
     from skel_extract_ros.codecs.messages import description_document
     rest, _, labels, _, _ = two_bone_sequence(n_frames=2)

@@ -25,10 +25,10 @@ points. Bone b gets
 of h, and 0 for a bone the frame did not see at all: its joint then comes from the joint
 term and the previous pose only).
 h is NOISE_MULTIPLE times the skeleton's own noise, the RMS distance of the observed points
-to its fit on the frames it was learned on (SkeletonModel.noise_m, from Alg. 2's tau): what
-counts as off is measured on the subject and the camera at hand, so a hand's millimetres
-and a cow's centimetres are judged alike (HALF_RESIDUAL where the noise is unknown: Step 2's
-provisional skeleton).
+to its fit on the frames it was learned on (SkeletonModel.noise_m: from Alg. 2's tau, and for
+Step 2's provisional skeleton `fit_noise` of its bones' rigid fits): what counts as off is
+measured on the subject and the camera at hand, so a hand's millimetres and a cow's
+centimetres are judged alike (HALF_RESIDUAL where the noise is not known).
 
 c_b is multiplied by 1 - o_b when the frame's observed points are at hand, o_b the share of
 bone b's posed points that lie outside the subject's silhouette (no observed ray passes
@@ -48,6 +48,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from scipy.spatial import cKDTree
+
 from .registration.visibility import ObservedView
 
 # a bone's confidence is one half at an RMS residual of this many times the skeleton's own
@@ -60,6 +62,9 @@ HALF_RESIDUAL = 0.03
 # a bone with fewer samples than this in a frame is partly seen: its confidence shrinks in
 # proportion (0 samples: 0)
 MIN_SAMPLES = 10
+# observed points a frame's fit noise is measured on at most (a strided subset): an RMS
+# distance needs no more
+NOISE_SAMPLES = 1000
 
 
 def half_residual(noise_m: float | None) -> float:
@@ -68,6 +73,24 @@ def half_residual(noise_m: float | None) -> float:
     if noise_m is None or not np.isfinite(noise_m) or noise_m <= 0:
         return HALF_RESIDUAL
     return NOISE_MULTIPLE * float(noise_m)
+
+
+def fit_noise(posed: np.ndarray, observed: list) -> float | None:
+    """m: the median over frames of the RMS distance from each frame's observed points (N_t,
+    3) m to the nearest of its posed model points (posed (F, M, 3) m): the noise of a fit
+    whose GMM variance is not at hand (Step 2's bones' rigid fits), as SkeletonModel.noise_m
+    is Alg. 2's (sqrt(3 tau): the same RMS distance, its posterior-weighted form). None when
+    no frame has observed points."""
+    rms = []
+    for points, observed_points in zip(posed, observed):
+        observed_points = np.asarray(observed_points, dtype=np.float64)
+        observed_points = observed_points[np.isfinite(observed_points).all(axis=1)]
+        if len(observed_points) == 0:
+            continue
+        observed_points = observed_points[::max(1, -(-len(observed_points) // NOISE_SAMPLES))]
+        distance, _ = cKDTree(points).query(observed_points)
+        rms.append(np.sqrt(np.mean(distance ** 2)))
+    return float(np.median(rms)) if rms else None
 
 
 def _per_bone(n_bones: int, bone_of_sample, values, sample_weights) -> tuple:

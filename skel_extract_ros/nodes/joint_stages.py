@@ -16,6 +16,8 @@ import time
 import numpy as np
 
 from ..codecs.messages import stamp_ns
+from ..core.articulated import blend, dense_weights
+from ..core.confidence import fit_noise
 from ..core.joints import JointEstimation
 from ..core.live import ArticulatedTracker, CameraTracker, LiveJointTracker
 from ..core.point_sets import finite_rows
@@ -211,8 +213,12 @@ class JointStages:
             # so joints come before Alg. 2's; Alg. 2's model then replaces it under the same
             # joint names. Not with live_frames
             # registered: lossless replay publishes Alg. 2's joints for the window, as run does.
+            # its noise: how far the window's observed points lie from its bones' rigid fits
+            one_bone = dense_weights(labels[:, None], np.ones((len(rest), 1)), len(parents))
+            noise = fit_noise(blend(rest, one_bone, rotations, translations), observed)
             step2 = SkeletonModel(rest, labels, parents, structure.joints, labels[:, None],
-                                  np.ones((len(rest), 1)), document['joint_ids'], structure.pivot_evidence())
+                                  np.ones((len(rest), 1)), document['joint_ids'], structure.pivot_evidence(),
+                                  None if noise is None else max(noise, np.sqrt(3.0 * self.params.min_tau)))
             self._serve(step2, document, sequence, stamps, frames, (rotations, translations), started,
                         provisional=True)
         estimate = JointEstimation(self.params).fit(rest, registered, observed, structure)
