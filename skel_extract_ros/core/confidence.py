@@ -47,9 +47,9 @@ a bone that fits its points may still pivot at the wrong place.
 from __future__ import annotations
 
 import numpy as np
-
 from scipy.spatial import cKDTree
 
+from .point_sets import finite_rows
 from .registration.visibility import ObservedView
 
 # a bone's confidence is one half at an RMS residual of this many times the skeleton's own
@@ -84,7 +84,7 @@ def fit_noise(posed: np.ndarray, observed: list) -> float | None:
     rms = []
     for points, observed_points in zip(posed, observed):
         observed_points = np.asarray(observed_points, dtype=np.float64)
-        observed_points = observed_points[np.isfinite(observed_points).all(axis=1)]
+        observed_points = observed_points[finite_rows(observed_points)]
         if len(observed_points) == 0:
             continue
         observed_points = observed_points[::max(1, -(-len(observed_points) // NOISE_SAMPLES))]
