@@ -213,11 +213,12 @@ class JointStages:
             # so joints come before Alg. 2's; Alg. 2's model then replaces it under the same
             # joint names. Not with live_frames
             # registered: lossless replay publishes Alg. 2's joints for the window, as run does.
+            own_bone, full_weight = labels[:, None], np.ones((len(rest), 1))
             # its noise: how far the window's observed points lie from its bones' rigid fits
-            one_bone = dense_weights(labels[:, None], np.ones((len(rest), 1)), len(parents))
-            noise = fit_noise(blend(rest, one_bone, rotations, translations), observed)
-            step2 = SkeletonModel(rest, labels, parents, structure.joints, labels[:, None],
-                                  np.ones((len(rest), 1)), document['joint_ids'], structure.pivot_evidence(),
+            posed = blend(rest, dense_weights(own_bone, full_weight, len(parents)), rotations, translations)
+            noise = fit_noise(posed, observed)
+            step2 = SkeletonModel(rest, labels, parents, structure.joints, own_bone, full_weight,
+                                  document['joint_ids'], structure.pivot_evidence(),
                                   None if noise is None else max(noise, np.sqrt(3.0 * self.params.min_tau)))
             self._serve(step2, document, sequence, stamps, frames, (rotations, translations), started,
                         provisional=True)
