@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from skel_extract_ros.core.articulated import BoneBlocks
+from skel_extract_ros.core.articulated import BoneBlocks, influenced_positions
 from skel_extract_ros.core.joints import JointEstimation, JointParams, simplex_least_squares
 from skel_extract_ros.core.rigid import fit_rigid_segments, turn_spans
 from skel_extract_ros.core.joint_centres import boundary_centroids, medial_anchors, pivot_evidence, solve_joints
@@ -113,7 +113,13 @@ def test_lbs_deform_is_eq8_over_each_points_bones():
         bone = influences[m, slot]
         written_out[f, m] += weights[m, slot] * (rotations[f, bone] @ rest[m] + translations[f, bone])
     np.testing.assert_allclose(blocks.deform(rotations, translations), written_out, atol=1e-12)
-    np.testing.assert_allclose(blocks.contributions(rotations, translations).sum(axis=2), written_out, atol=1e-12)
+    each_bone = influenced_positions(rest, rotations, translations, influences)         # (M, k, F, 3)
+    np.testing.assert_allclose(np.einsum('mk,mkfi->fmi', weights, each_bone), written_out, atol=1e-12)
+    # the block update keeps Eq. (8) itself, bone by bone: what it returns is the LBS of the
+    # transforms it leaves, the twice-listed bone's point included
+    targets = written_out + rng.normal(scale=0.1, size=(F, M, 3))
+    deformed = blocks.update(targets, 1.0, rotations, translations, rng.normal(size=(B, 3)), 1.0, 0.1, sweeps=2)
+    np.testing.assert_allclose(deformed, blocks.deform(rotations, translations), atol=1e-12)
 
 
 def test_the_bone_block_update_is_the_same_for_a_window_and_for_each_frame():

@@ -23,6 +23,7 @@ frame: c = P1 / tau and z the posterior mean (camera frames), or c = zeta and z 
 from __future__ import annotations
 
 import numpy as np
+from scipy import sparse
 
 from .rigid import rotations_from_h
 
@@ -35,17 +36,28 @@ def dense_weights(influences: np.ndarray, weights: np.ndarray, n_bones: int) -> 
     return dense
 
 
+def moved_by(points: np.ndarray, rotations: np.ndarray, translations: np.ndarray) -> np.ndarray:
+    """(n, F, 3) R^t q + T^t: points q (n, 3) moved by one bone's rotations (F, 3, 3) and
+    translations (F, 3), as one (3F, 3) x (3, n) product."""
+    F = len(rotations)
+    rotated = (rotations.reshape(F * 3, 3) @ points.T).reshape(F, 3, len(points))
+    return np.transpose(rotated, (2, 0, 1)) + translations[None]
+
+
 def influenced_positions(rest, rotations, translations, influences) -> np.ndarray:
-    """(F, M, k, 3) each rest point (M, 3) moved by each of its k influencing bones (M, k):
+    """(M, k, F, 3) each rest point (M, 3) moved by each of its k influencing bones (M, k):
     R_j^t q_m + T_j^t for rotations (F, B, 3, 3), translations (F, B, 3). Only those k:
     every point under every bone is (F, B, M, 3), tens of MB for a window of a body."""
-    F, M, k = len(rotations), len(rest), influences.shape[1]
-    positions = np.empty((F, M, k, 3))
-    for slot in range(k):   # k <= max_influences (4): a few (F, M, 3, 3) products
-        bones = influences[:, slot]
-        positions[:, :, slot] = (np.einsum('fmij,mj->fmi', rotations[:, bones], rest)
-                                 + translations[:, bones])
-    return positions
+    M, k = influences.shape
+    F = len(rotations)
+    flat = influences.ravel()
+    order = np.argsort(flat, kind='stable')
+    bounds = np.searchsorted(flat[order], np.arange(rotations.shape[1] + 1))
+    positions = np.empty((M * k, F, 3))
+    for bone in np.flatnonzero(np.diff(bounds)):   # one product per bone its points use
+        rows = order[bounds[bone]:bounds[bone + 1]]
+        positions[rows] = moved_by(rest[rows // k], rotations[:, bone], translations[:, bone])
+    return positions.reshape(M, k, F, 3)
 
 
 def blend(rest, dense, rotations, translations) -> np.ndarray:
@@ -90,6 +102,13 @@ class BoneBlocks:
         self._entry_rest = self.rest[self._entry_point]
         # (B, E) one-hot: row b sums bone b's entries (B bones x a few entries a point)
         self._entry_sum = (bone_of_entry[None, :] == np.arange(n_bones)[:, None]).astype(np.float64)
+        # (M, E): row m sums point m's entries (Eq. 8 from the entries' contributions)
+        n_entries = len(self._entry_point)
+        self._entry_to_point = sparse.csr_matrix((np.ones(n_entries), (self._entry_point, np.arange(n_entries))),
+                                                 shape=(len(self.rest), n_entries))
+        # a bone listed twice in a point's row puts that point twice in the bone's block
+        self._repeated = any(len(np.unique(self._entry_point[a:b])) < b - a
+                             for a, b in zip(self._entry_start[:-1], self._entry_start[1:]))
         # each bone's joints: (the other bone, the bone the joint is stored on)
         self._links = []
         for bone in range(n_bones):
@@ -106,10 +125,11 @@ class BoneBlocks:
         """Eq. (8): (F, M, 3) for rotations (F, B, 3, 3), translations (F, B, 3)."""
         return blend(self.rest, self.dense, rotations, translations)
 
-    def contributions(self, rotations: np.ndarray, translations: np.ndarray) -> np.ndarray:
-        """(F, M, k, 3) w_mj (R_j q_m + T_j) for each point's k influencing bones."""
-        return self.weights[None, :, :, None] * influenced_positions(self.rest, rotations, translations,
-                                                                     self.influences)
+    def _moved(self, bone: int, rotations: np.ndarray, translations: np.ndarray) -> np.ndarray:
+        """(n, F, 3) w_mj (R_j q_m + T_j) for bone j's n entries, rotations (F, 3, 3) and
+        translations (F, 3) its transforms."""
+        span = slice(self._entry_start[bone], self._entry_start[bone + 1])
+        return self._entry_weight[span, None, None] * moved_by(self._entry_rest[span], rotations, translations)
 
     def update(self, targets: np.ndarray, point_weights, rotations: np.ndarray, translations: np.ndarray,
                joints: np.ndarray, alpha: float, gamma: float, anchors: tuple | None = None,
@@ -122,33 +142,41 @@ class BoneBlocks:
         joint and E_small weights; anchors: (rotations, translations) E_small pulls towards
         (None: each bone's transform as the update reaches it, a proximal step). Returns
         the (F, M, 3) contributions' sum, Eq. (8) at the new transforms."""
-        F = len(rotations)
-        point_weights = np.broadcast_to(np.asarray(point_weights, dtype=np.float64), (F, len(self.rest)))
-        contributions = self.contributions(rotations, translations)
-        deformed = contributions.sum(axis=2)
+        F, M = len(rotations), len(self.rest)
+        point_weights = np.broadcast_to(np.asarray(point_weights, dtype=np.float64), (F, M))
+        start = self._entry_start
+        # Entry-major (E, F, 3) and point-major (M, F, 3): a bone's entries are one block and
+        # its points' rows are whole frames, so the loop over bones slices and gathers rows
+        # instead of gathering scattered (frame, point) pairs (three times faster on a window).
+        contributions = np.concatenate([self._moved(bone, rotations[:, bone], translations[:, bone])
+                                        for bone in range(self.n_bones)])                # (E, F, 3)
+        deformed = np.asarray(self._entry_to_point @ contributions.reshape(-1, F * 3)).reshape(M, F, 3)
         weight_w = point_weights[:, self._entry_point] * self._entry_weight          # (F, E) c w
         lam = weight_w * self._entry_weight                                          # (F, E) c w^2
         lam_totals = lam @ self._entry_sum.T + alpha * self._link_counts + gamma       # (F, B)
         centre_sums = np.stack([joints[stored].sum(axis=0) for _, stored in self._links])      # (B, 3)
         mu_as = (np.matmul(self._entry_sum, lam[:, :, None] * self._entry_rest)
                  + alpha * centre_sums) / lam_totals[..., None]                        # (F, B, 3)
-        weighted_rest = weight_w[..., None] * self._entry_rest                         # (F, E, 3)
-        entry_targets = targets[:, self._entry_point]                                  # (F, E, 3)
-        start = self._entry_start
+        entry_cw = np.ascontiguousarray(weight_w.T)                                    # (E, F) c w
+        entry_targets = np.transpose(targets, (1, 0, 2))[self._entry_point]            # (E, F, 3)
         for _ in range(sweeps):
             for bone, (others, stored) in enumerate(self._links):   # loop over bones, vectorised
                 span = slice(start[bone], start[bone + 1])
-                m, slot = self._entry_point[span], self._entry_slot[span]
+                m = self._entry_point[span]
                 anchor_r = rotations[:, bone] if anchors is None else anchors[0][:, bone]
                 anchor_t = translations[:, bone] if anchors is None else anchors[1][:, bone]
                 lam_total, mu_a = lam_totals[:, bone], mu_as[:, bone]                 # (F,), (F, 3)
-                residual = entry_targets[:, span] - (deformed[:, m] - contributions[:, m, slot])   # = w b
+                own = contributions[span]                                              # (n, F, 3)
+                # lambda b = c w (z - u) of each entry (the data term's b = (z - u) / w)
+                weighted_residual = entry_cw[span, :, None] * (entry_targets[span] - (deformed[m] - own))
                 centres = joints[stored]                                               # (L, 3)
                 carried = (np.matmul(rotations[:, others], centres[None, :, :, None])[..., 0]
                            + translations[:, others])                                  # (F, L, 3)
-                mu_b = (np.matmul(weight_w[:, None, span], residual)[:, 0] + alpha * carried.sum(axis=1)
+                mu_b = (weighted_residual.sum(axis=0) + alpha * carried.sum(axis=1)
                         + gamma * anchor_t) / lam_total[:, None]
-                Z = (np.matmul(np.transpose(weighted_rest[:, span], (0, 2, 1)), residual)
+                n = len(m)
+                Z = (np.transpose((self._entry_rest[span].T @ weighted_residual.reshape(n, F * 3)).reshape(3, F, 3),
+                                  (1, 0, 2))                                           # sum c w q b^T
                      + alpha * np.matmul(centres.T, carried)
                      - lam_total[:, None, None] * mu_a[:, :, None] * mu_b[:, None, :]
                      + gamma * np.transpose(anchor_r, (0, 2, 1)))
@@ -156,8 +184,10 @@ class BoneBlocks:
                 R = rotations_from_h(Z[0])[None] if F == 1 else rotations_from_h(Z)
                 rotations[:, bone] = R
                 translations[:, bone] = mu_b - np.matmul(R, mu_a[..., None])[..., 0]
-                new = self._entry_weight[span][None, :, None] * (
-                    np.matmul(self._entry_rest[span], np.transpose(R, (0, 2, 1))) + translations[:, bone][:, None, :])
-                deformed[:, m] += new - contributions[:, m, slot]
-                contributions[:, m, slot] = new
-        return deformed
+                new = self._moved(bone, R, translations[:, bone])
+                if self._repeated:
+                    np.add.at(deformed, m, new - own)
+                else:
+                    deformed[m] += new - own
+                contributions[span] = new
+        return np.ascontiguousarray(np.transpose(deformed, (1, 0, 2)))

@@ -270,9 +270,9 @@ class JointEstimation:
         F, M = c.shape
         single = self.single_bone_costs(rest, rotations, translations, c, z)
         influences = np.argsort(single, axis=1)[:, :k]
-        chosen = influenced_positions(rest, rotations, translations, influences)      # (F, M, k, 3)
-        per_point = chosen.transpose(1, 2, 0, 3).reshape(M, k, F * 3)                 # (M, k, 3F)
-        weighted = (chosen * c[:, :, None, None]).transpose(1, 2, 0, 3).reshape(M, k, F * 3)
+        chosen = influenced_positions(rest, rotations, translations, influences)      # (M, k, F, 3)
+        per_point = chosen.reshape(M, k, F * 3)                                       # (M, k, 3F)
+        weighted = (chosen * c.T[:, None, :, None]).reshape(M, k, F * 3)
         G = weighted @ per_point.transpose(0, 2, 1)
         h = (weighted @ z.transpose(1, 0, 2).reshape(M, F * 3, 1))[..., 0]
         return influences, simplex_least_squares(G, h)
