@@ -36,12 +36,10 @@ def dense_weights(influences: np.ndarray, weights: np.ndarray, n_bones: int) -> 
     return dense
 
 
-def moved_by(points: np.ndarray, rotations: np.ndarray, translations: np.ndarray) -> np.ndarray:
-    """(n, F, 3) R^t q + T^t: points q (n, 3) moved by one bone's rotations (F, 3, 3) and
-    translations (F, 3), as one (3F, 3) x (3, n) product."""
-    F = len(rotations)
-    rotated = (rotations.reshape(F * 3, 3) @ points.T).reshape(F, 3, len(points))
-    return np.transpose(rotated, (2, 0, 1)) + translations[None]
+def stacked_transposed(rotations: np.ndarray) -> np.ndarray:
+    """(3, 3F) [R_1^T ... R_F^T] of one bone's rotations (F, 3, 3): q (n, 3) times it is
+    (n, 3F), row m the point R^t q_m for every frame t."""
+    return np.transpose(rotations, (2, 0, 1)).reshape(3, -1)
 
 
 def influenced_positions(rest, rotations, translations, influences) -> np.ndarray:
@@ -54,9 +52,10 @@ def influenced_positions(rest, rotations, translations, influences) -> np.ndarra
     order = np.argsort(flat, kind='stable')
     bounds = np.searchsorted(flat[order], np.arange(rotations.shape[1] + 1))
     positions = np.empty((M * k, F, 3))
-    for bone in np.flatnonzero(np.diff(bounds)):   # one product per bone its points use
+    for bone in np.flatnonzero(np.diff(bounds)):   # one (n, 3) x (3, 3F) product per bone its points use
         rows = order[bounds[bone]:bounds[bone + 1]]
-        positions[rows] = moved_by(rest[rows // k], rotations[:, bone], translations[:, bone])
+        positions[rows] = (rest[rows // k] @ stacked_transposed(rotations[:, bone])).reshape(-1, F, 3) \
+            + translations[None, :, bone]
     return positions.reshape(M, k, F, 3)
 
 
@@ -109,6 +108,13 @@ class BoneBlocks:
         # a bone listed twice in a point's row puts that point twice in the bone's block
         self._repeated = any(len(np.unique(self._entry_point[a:b])) < b - a
                              for a, b in zip(self._entry_start[:-1], self._entry_start[1:]))
+        # per bone, its block of entries: (slice, points (n,), rest q (n, 3), w q (n, 3), w (n, 1, 1))
+        self._blocks = []
+        for a, b in zip(self._entry_start[:-1], self._entry_start[1:]):
+            span = slice(int(a), int(b))
+            weight = self._entry_weight[span]
+            self._blocks.append((span, self._entry_point[span], self._entry_rest[span],
+                                 weight[:, None] * self._entry_rest[span], weight[:, None, None]))
         # each bone's joints: (the other bone, the bone the joint is stored on)
         self._links = []
         for bone in range(n_bones):
@@ -128,9 +134,8 @@ class BoneBlocks:
     def _moved(self, bone: int, rotations: np.ndarray, translations: np.ndarray) -> np.ndarray:
         """(n, F, 3) w_mj (R_j q_m + T_j) for bone j's n entries, rotations (F, 3, 3) and
         translations (F, 3) its transforms."""
-        span = slice(self._entry_start[bone], self._entry_start[bone + 1])
-        return self._entry_weight[span, None, None] * moved_by(self._entry_rest[span], rotations, translations)
-
+        _, _, _, weighted_rest, weight = self._blocks[bone]
+        return (weighted_rest @ stacked_transposed(rotations)).reshape(-1, len(rotations), 3) + weight * translations
     def update(self, targets: np.ndarray, point_weights, rotations: np.ndarray, translations: np.ndarray,
                joints: np.ndarray, alpha: float, gamma: float, anchors: tuple | None = None,
                sweeps: int = 1) -> np.ndarray:
@@ -161,8 +166,7 @@ class BoneBlocks:
         entry_targets = np.transpose(targets, (1, 0, 2))[self._entry_point]            # (E, F, 3)
         for _ in range(sweeps):
             for bone, (others, stored) in enumerate(self._links):   # loop over bones, vectorised
-                span = slice(start[bone], start[bone + 1])
-                m = self._entry_point[span]
+                span, m, rest, _, _ = self._blocks[bone]
                 anchor_r = rotations[:, bone] if anchors is None else anchors[0][:, bone]
                 anchor_t = translations[:, bone] if anchors is None else anchors[1][:, bone]
                 lam_total, mu_a = lam_totals[:, bone], mu_as[:, bone]                 # (F,), (F, 3)
@@ -174,8 +178,7 @@ class BoneBlocks:
                            + translations[:, others])                                  # (F, L, 3)
                 mu_b = (weighted_residual.sum(axis=0) + alpha * carried.sum(axis=1)
                         + gamma * anchor_t) / lam_total[:, None]
-                n = len(m)
-                Z = (np.transpose((self._entry_rest[span].T @ weighted_residual.reshape(n, F * 3)).reshape(3, F, 3),
+                Z = (np.transpose((rest.T @ weighted_residual.reshape(len(m), F * 3)).reshape(3, F, 3),
                                   (1, 0, 2))                                           # sum c w q b^T
                      + alpha * np.matmul(centres.T, carried)
                      - lam_total[:, None, None] * mu_a[:, :, None] * mu_b[:, None, :]
