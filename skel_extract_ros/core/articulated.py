@@ -94,10 +94,10 @@ class BoneBlocks:
         point, slot = np.nonzero(self.weights > 1e-8)
         bone_of_entry = self.influences[point, slot]
         order = np.argsort(bone_of_entry, kind='stable')      # row-major within each bone
-        self._entry_point, self._entry_slot = point[order], slot[order]
+        self._entry_point = point[order]
         bone_of_entry = bone_of_entry[order]
         self._entry_start = np.concatenate([[0], np.cumsum(np.bincount(bone_of_entry, minlength=n_bones))])
-        self._entry_weight = self.weights[self._entry_point, self._entry_slot]
+        self._entry_weight = self.weights[point[order], slot[order]]
         self._entry_rest = self.rest[self._entry_point]
         # (B, E) one-hot: row b sums bone b's entries (B bones x a few entries a point)
         self._entry_sum = (bone_of_entry[None, :] == np.arange(n_bones)[:, None]).astype(np.float64)
@@ -136,6 +136,7 @@ class BoneBlocks:
         translations (F, 3) its transforms."""
         _, _, _, weighted_rest, weight = self._blocks[bone]
         return (weighted_rest @ stacked_transposed(rotations)).reshape(-1, len(rotations), 3) + weight * translations
+
     def update(self, targets: np.ndarray, point_weights, rotations: np.ndarray, translations: np.ndarray,
                joints: np.ndarray, alpha: float, gamma: float, anchors: tuple | None = None,
                sweeps: int = 1) -> np.ndarray:
