@@ -11,8 +11,8 @@ from skel_extract_ros.core.articulated import BoneBlocks, influenced_positions
 from skel_extract_ros.core.joints import JointEstimation, JointParams, simplex_least_squares
 from skel_extract_ros.core.rigid import fit_rigid_segments, turn_spans
 from skel_extract_ros.core.joint_centres import boundary_centroids, medial_anchors, pivot_evidence, solve_joints
-from skel_extract_ros.core.structure import (StructureError, StructureParams, _neighbour_graph, _residuals,
-                                             extract_structure, split_evidence)
+from skel_extract_ros.core.structure import (StructureError, StructureParams, _compact, _neighbour_graph,
+                                             _refit_receivers, _residuals, extract_structure, split_evidence)
 from two_bone import two_bone_sequence
 
 
@@ -315,6 +315,27 @@ def test_surface_anchors_are_the_paper_boundary_centroids():
     assert np.allclose(surface.anchor_spread, spread) and (spread > 0).all()
     with pytest.raises(ValueError, match='anchor_depth'):
         StructureParams(anchor_depth='deep')
+
+
+def test_a_merge_refits_only_the_bones_that_received_points():
+    """A refinement pass refits only the bones the removed one handed its points to: the
+    fits and residuals it keeps equal those of every bone fitted again on the new labels."""
+    rng = np.random.default_rng(3)
+    F, M, B = 6, 300, 7
+    rest = rng.normal(size=(M, 3))
+    registered = rng.normal(scale=0.1, size=(F, M, 3)) + rest
+    labels = rng.integers(0, B, size=M)
+    rotations, translations = fit_rigid_segments(rest, registered, labels, B)
+    residual = _residuals(rest, registered, rotations, translations)
+    removed = 3
+    moved = labels == removed
+    labels[moved] = rng.choice([1, 5], size=moved.sum())          # two receivers, one below, one above
+    kept_r, kept_t, kept_residual = _refit_receivers(rest, registered, labels, removed, np.array([1, 5]),
+                                                     rotations, translations, residual)
+    full_r, full_t = fit_rigid_segments(rest, registered, _compact(labels), B - 1)
+    np.testing.assert_allclose(kept_r, full_r, atol=1e-12)
+    np.testing.assert_allclose(kept_t, full_t, atol=1e-12)
+    np.testing.assert_allclose(kept_residual, _residuals(rest, registered, full_r, full_t), atol=1e-12)
 
 
 def test_expanded_residuals_equal_the_direct_sums():

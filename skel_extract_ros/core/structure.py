@@ -284,6 +284,24 @@ def split_evidence(residual: np.ndarray, labels: np.ndarray, parents: np.ndarray
     return _own_motion(residual, labels, parents, n_frames) / noise
 
 
+def _refit_receivers(rest, registered, labels, removed: int, receivers: np.ndarray, rotations, translations,
+                     residual) -> tuple:
+    """The bones' rigid fits and residuals (as fit_rigid_segments and _residuals) once bone
+    `removed` has handed its points to `receivers` (labels (M,): the new labels, before
+    compacting): only the receivers' fits change, every other bone keeps its points, so
+    only theirs are fitted again (a refinement pass costs a few bones, not all of them)."""
+    rotations, translations = np.delete(rotations, removed, axis=1), np.delete(translations, removed, axis=1)
+    residual = np.delete(residual, removed, axis=1)
+    changed = receivers - (receivers > removed)                         # their indices once compacted
+    points = np.isin(labels, receivers)
+    local = np.searchsorted(receivers, labels[points])
+    changed_rotations, changed_translations = fit_rigid_segments(rest[points], registered[:, points], local,
+                                                                 len(receivers))
+    rotations[:, changed], translations[:, changed] = changed_rotations, changed_translations
+    residual[:, changed] = _residuals(rest, registered, changed_rotations, changed_translations)
+    return rotations, translations, residual
+
+
 def _anchors(labels, parents, adjacency, rest, params: 'StructureParams') -> tuple:
     """The joint anchors c~ (B, 3) as the parameters ask for, their spread (B,) m, and the
     camera rays (B, 3) of those whose depth a section measured (medial_anchors; None for
@@ -334,10 +352,10 @@ def extract_structure(rest: np.ndarray, registered: np.ndarray, params: Structur
         labels = _compact(_majority(labels, adjacency, labels.max() + 1))
 
     cluster_noise = None
+    rotations, translations = fit_rigid_segments(rest, registered, labels, labels.max() + 1)
+    residual = _residuals(rest, registered, rotations, translations)
     for _ in range(4 * K):  # refinement until stable; each pass removes one bone at most
         B = labels.max() + 1
-        rotations, translations = fit_rigid_segments(rest, registered, labels, B)
-        residual = _residuals(rest, registered, rotations, translations)
         if params.evidence_noise == 'clusters' and cluster_noise is None:
             # the first pass fits the clusters the relabelling rounds left
             cluster_noise = rigid_fit_noise(residual, labels, len(registered), size)
@@ -381,6 +399,8 @@ def extract_structure(rest: np.ndarray, registered: np.ndarray, params: Structur
         keep = np.flatnonzero(np.arange(B) != remove)
         moved = labels == remove
         labels[moved] = keep[np.argmin(residual[moved][:, keep], axis=1)]
+        rotations, translations, residual = _refit_receivers(rest, registered, labels, remove, np.unique(labels[moved]),
+                                                             rotations, translations, residual)
         labels = _compact(labels)
 
     B = labels.max() + 1
