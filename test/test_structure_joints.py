@@ -598,21 +598,25 @@ def _swaying_torso_and_waving_wrist(sway_deg, wave_deg, noise, n_frames=40, seed
     return rest, np.array(frames), part
 
 
-def test_the_clusters_noise_does_not_rise_when_a_swaying_part_is_merged():
+def test_the_noise_does_not_rise_when_the_least_turn_merges_a_swaying_part():
     # the torso sways 5 degrees over the legs: a joint by evidence, merged by a least turn
-    # of 15 degrees. In one bone, the sway is left in its rigid fit: measured on the bones,
-    # the noise rises with it and every other joint's evidence falls (the wrist's by more
-    # than half); measured once on the K-means clusters, it does not
+    # of 15 degrees. In one bone, the sway is left in its rigid fit: measured on the bones
+    # after that merge (`bones`), the noise rises with it and every other joint's evidence
+    # falls (the wrist's by more than half); held from the least turn's first merge (the
+    # default) or measured once on the K-means clusters, it does not
     rest, registered, _ = _swaying_torso_and_waving_wrist(sway_deg=5.0, wave_deg=12.0, noise=0.002)
 
     def wrist_evidence(**kw):
         structure = extract_structure(rest, registered, StructureParams(n_clusters=30, **kw))
         hand = np.argmin(np.linalg.norm(structure.boundary_centroids - [0.6, 0.8, 0.0], axis=1))
         return structure.n_bones, structure.split_evidence[hand]
-    bones, kept = wrist_evidence(min_turn_deg=0.0)
+    bones, kept = wrist_evidence(min_turn_deg=0.0, evidence_noise='bones')
     assert bones == 3                                         # legs, torso, hand
     assert wrist_evidence(min_turn_deg=0.0, evidence_noise='clusters')[1] == pytest.approx(kept, rel=0.1)
-    n_merged, on_bones = wrist_evidence(min_turn_deg=15.0)
+    assert wrist_evidence(min_turn_deg=0.0) == (bones, kept)  # no least turn: nothing held
+    n_merged, on_bones = wrist_evidence(min_turn_deg=15.0, evidence_noise='bones')
     n_clusters_merged, on_clusters = wrist_evidence(min_turn_deg=15.0, evidence_noise='clusters')
-    assert n_merged == n_clusters_merged == 2
+    n_held, held = wrist_evidence(min_turn_deg=15.0)
+    assert n_merged == n_clusters_merged == n_held == 2
     assert on_clusters > 2.0 * on_bones
+    assert held > 0.9 * kept and held > 2.0 * on_bones       # as high as with the sway kept apart

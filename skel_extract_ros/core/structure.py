@@ -57,7 +57,12 @@ part that sways (a torso over the legs) raises it and lowers every other joint's
 near the threshold one merge pulls a bending wrist under it. The evidence threshold
 therefore sits low enough to keep such joints, and the least turn (`min_turn_deg`, an angle:
 the same for a hand, a body and a cow) then removes the cuts through parts that do not bend,
-which a low threshold lets through.
+which a low threshold lets through. What the least turn merges is a part that moves, a few
+degrees, not one the registration failed to fit: its sway left in the merged bone's rigid fit
+is motion, not registration noise. So by default (`evidence_noise: until_turn`) the noise is
+measured on the current bones until the least turn merges its first joint and held from
+then on; measured after each of those merges (`bones`), it grows with them and pulls
+joints that bend under the threshold.
 
 Joint locations and anchors: core/joint_centres.py.
 """
@@ -107,10 +112,12 @@ class StructureParams:
                                          'the points are dropped, a fraction', 0.0, 1.0)
     joint_merge_fraction: float = parameter(0.03, 'paper rule 3: joints closer than this x the subject size are '
                                             'merged, a fraction', 0.0, 1.0)
-    evidence_noise: str = parameter('bones', 'the noise the split evidence divides by: bones (the '
-                                    "current bones' rigid-fit residual, again at each refinement pass) or "
-                                    "clusters (the K-means clusters' after the relabelling rounds, once: "
-                                    'small parts, nearly rigid)', choices=('bones', 'clusters'))
+    evidence_noise: str = parameter('until_turn', 'the noise the split evidence divides by: until_turn (the '
+                                    "current bones' rigid-fit residual, again at each refinement pass until "
+                                    'the least turn merges a joint, then held: the sway it merges is motion), '
+                                    "bones (the same at every pass) or clusters (the K-means clusters' after "
+                                    'the relabelling rounds, once: small parts, nearly rigid)',
+                                    choices=('until_turn', 'bones', 'clusters'))
     min_turn_deg: float = parameter(15.0, 'once the other rules keep every bone, a joint whose two bones turn '
                                     'against each other by less than this over the window is merged, the least '
                                     'turn first (0 = off), degrees', 0.0, 180.0)
@@ -351,14 +358,14 @@ def extract_structure(rest: np.ndarray, registered: np.ndarray, params: Structur
         labels = _compact(np.argmin(residual, axis=1))
         labels = _compact(_majority(labels, adjacency, labels.max() + 1))
 
-    cluster_noise = None
+    held_noise = None       # the noise the evidence divides by once held (None: the current bones')
     rotations, translations = fit_rigid_segments(rest, registered, labels, labels.max() + 1)
     residual = _residuals(rest, registered, rotations, translations)
     for _ in range(4 * K):  # refinement until stable; each pass removes one bone at most
         B = labels.max() + 1
-        if params.evidence_noise == 'clusters' and cluster_noise is None:
+        if params.evidence_noise == 'clusters' and held_noise is None:
             # the first pass fits the clusters the relabelling rounds left
-            cluster_noise = rigid_fit_noise(residual, labels, len(registered), size)
+            held_noise = rigid_fit_noise(residual, labels, len(registered), size)
         if B == 1:
             parents = np.array([-1])
             break
@@ -368,7 +375,7 @@ def extract_structure(rest: np.ndarray, registered: np.ndarray, params: Structur
         small = np.flatnonzero(counts < params.min_bone_fraction * M)
         if len(small):
             remove = int(small[np.argmin(counts[small])])
-        evidence = split_evidence(residual, labels, parents, len(registered), size, cluster_noise)
+        evidence = split_evidence(residual, labels, parents, len(registered), size, held_noise)
         if remove is None:
             still = np.flatnonzero(evidence < params.motion_noise_factor)
             if len(still):
@@ -393,6 +400,8 @@ def extract_structure(rest: np.ndarray, registered: np.ndarray, params: Structur
             turns = np.where(parents >= 0, turn_spans(rotations, parents), np.inf)
             if turns.min() < params.min_turn_deg:
                 remove = int(np.argmin(turns))
+                if params.evidence_noise == 'until_turn' and held_noise is None:
+                    held_noise = rigid_fit_noise(residual, labels, len(registered), size)
         if remove is None:
             break
         # hand the removed bone's points to the remaining bone that fits each best
