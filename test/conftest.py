@@ -5,6 +5,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from skel_extract_ros.sim import NoiseModel, generate_sequence
@@ -72,14 +73,13 @@ def held_alg2(monkeypatch):
     release.set()          # a node still waiting ends with the test
 
 
-def check_bvh_joints(bvh_positions, skeleton: dict) -> None:
+def check_bvh_joints(bvh_positions, skeleton: dict) -> np.ndarray:
     """A BVH's joints read back (bvh_positions (F, J, 3) m, skeleton.json's joint order) are
     skeleton.json's (`skeleton`, its dict) up to what a BVH cannot hold: its bones keep their
     rest lengths, while the estimated joints' distances change by a few mm per bone from frame
     to frame, which adds up along a chain. So each joint's error is at most the change of the
     bones' lengths on its path from the root, plus 1 mm (a bone with several children is
-    turned onto them as a whole; the file's rounding)."""
-    import numpy as np
+    turned onto them as a whole; the file's rounding). Returns the error (F, J) m."""
     parents = skeleton['parents']
     positions = np.array([f['positions'] for f in skeleton['frames']], dtype=np.float64)
     rest = np.array(skeleton['rest_positions'], dtype=np.float64)
@@ -97,6 +97,7 @@ def check_bvh_joints(bvh_positions, skeleton: dict) -> None:
             k = parents[k]
     assert (error <= on_path + 1e-3).all(), (error - on_path).max()
     assert np.median(error) < 3.5e-3, np.median(error)
+    return error
 
 
 def check_sample_scores(report: dict) -> None:
