@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from skel_extract_ros.core.bone_rotations import depth_first
 from skel_extract_ros.sim import NoiseModel, generate_sequence
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -80,21 +81,15 @@ def check_bvh_joints(bvh_positions, skeleton: dict) -> np.ndarray:
     to frame, which adds up along a chain. So each joint's error is at most the change of the
     bones' lengths on its path from the root, plus 1 mm (a bone with several children is
     turned onto them as a whole; the file's rounding). Returns the error (F, J) m."""
-    parents = skeleton['parents']
+    parents = np.asarray(skeleton['parents'])
     positions = np.array([f['positions'] for f in skeleton['frames']], dtype=np.float64)
     rest = np.array(skeleton['rest_positions'], dtype=np.float64)
     error = np.linalg.norm(np.asarray(bvh_positions) - positions, axis=2)
-    length_change = np.zeros_like(error)                   # (F, J): bone j's, to its parent
-    for j, parent in enumerate(parents):
-        if parent >= 0:
-            length_change[:, j] = np.abs(np.linalg.norm(positions[:, j] - positions[:, parent], axis=1)
-                                         - np.linalg.norm(rest[j] - rest[parent]))
-    on_path = np.zeros_like(error)
-    for j in range(len(parents)):
-        k = j
-        while parents[k] >= 0:
-            on_path[:, j] += length_change[:, k]
-            k = parents[k]
+    on_path = np.zeros_like(error)      # (F, J): the bones' length changes from the root to j
+    for j in depth_first(parents)[1:]:  # parents first: a parent's sum is complete before its children's
+        parent = parents[j]
+        on_path[:, j] = on_path[:, parent] + np.abs(np.linalg.norm(positions[:, j] - positions[:, parent], axis=1)
+                                                    - np.linalg.norm(rest[j] - rest[parent]))
     assert (error <= on_path + 1e-3).all(), (error - on_path).max()
     assert np.median(error) < 3.5e-3, np.median(error)
     return error
