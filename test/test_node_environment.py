@@ -105,36 +105,70 @@ def test_replay_publishes_with_the_large_shared_memory_profile():
     assert _probe('nodes')[4] == 'None'     # the nodes' side does not need it
 
 
+class _AccumulatorProcess:
+    """The accumulator node as a process of its own, alone in a DDS domain, its output in
+    a log: `wait_for` a text in the log."""
+
+    def __init__(self, tmp_path):
+        self.log_path = tmp_path / 'accumulator.log'
+        environment = dict(os.environ, ROS_DOMAIN_ID=str(100 + (os.getpid() + 91) % 100),
+                           ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', PYTHONUNBUFFERED='1')
+        with open(self.log_path, 'w') as log:
+            self.process = subprocess.Popen([sys.executable, '-m', 'skel_extract_ros.nodes.accumulator_node'],
+                                            stdout=log, stderr=subprocess.STDOUT, env=environment)
+
+    def wait_for(self, text: str, what: str) -> None:
+        import time
+        deadline = time.monotonic() + 60
+        while text not in self.log_path.read_text():
+            assert self.process.poll() is None, self.log_path.read_text()
+            assert time.monotonic() < deadline, f'no {what}: {self.log_path.read_text()[-2000:]}'
+            time.sleep(0.1)
+
+    def __enter__(self) -> '_AccumulatorProcess':
+        return self
+
+    def __exit__(self, *_exc) -> None:
+        if self.process.poll() is None:
+            self.process.kill()
+
+
 def test_a_node_writes_its_threads_stacks_on_sigusr1_and_goes_on(tmp_path):
     """What a node that does not end or answer is doing: SIGUSR1 puts every thread's stack
     in its log (replay sends it before killing a node that ignored Ctrl-C); the node keeps
     running and still ends cleanly on Ctrl-C."""
     import signal
     import time
-    log_path = tmp_path / 'accumulator.log'
-    environment = dict(os.environ, ROS_DOMAIN_ID=str(100 + (os.getpid() + 91) % 100),
-                       ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', PYTHONUNBUFFERED='1')
-    with open(log_path, 'w') as log:
-        node = subprocess.Popen([sys.executable, '-m', 'skel_extract_ros.nodes.accumulator_node'],
-                                stdout=log, stderr=subprocess.STDOUT, env=environment)
-    try:
-        def wait_for(text, what):
-            deadline = time.monotonic() + 60
-            while text not in log_path.read_text():
-                assert node.poll() is None, log_path.read_text()
-                assert time.monotonic() < deadline, f'no {what}: {log_path.read_text()[-2000:]}'
-                time.sleep(0.1)
-        wait_for('waiting for registered_points', 'start-up line')
-        node.send_signal(signal.SIGUSR1)
-        wait_for('run_node', 'stack of the main thread')       # spinning, called from run_node
-        assert 'Current thread' in log_path.read_text() or 'Thread 0x' in log_path.read_text()
+    with _AccumulatorProcess(tmp_path) as node:
+        node.wait_for('waiting for registered_points', 'start-up line')
+        node.process.send_signal(signal.SIGUSR1)
+        node.wait_for('run_node', 'stack of the main thread')       # spinning, called from run_node
+        log = node.log_path.read_text()
+        assert 'Current thread' in log or 'Thread 0x' in log
         time.sleep(0.5)
-        assert node.poll() is None                                 # it goes on
-        node.send_signal(signal.SIGINT)
-        assert node.wait(timeout=20) == 0
-    finally:
-        if node.poll() is None:
-            node.kill()
+        assert node.process.poll() is None                             # it goes on
+        node.process.send_signal(signal.SIGINT)
+        assert node.process.wait(timeout=20) == 0
+
+
+@pytest.mark.skipif(not os.path.isdir('/dev/shm'), reason='Fast DDS keeps its segments in /dev/shm')
+def test_a_node_ended_by_ctrl_c_leaves_no_shared_memory_segment(tmp_path):
+    """Fast DDS's participant keeps a shared-memory segment in /dev/shm, and only destroying
+    the node removes it: a node that exited without (os._exit alone) left one per run,
+    4 GB on the development machine after a day of replays and test runs."""
+    import re
+    import signal
+    with _AccumulatorProcess(tmp_path) as node:
+        node.wait_for('waiting for registered_points', 'start-up line')
+        # alone in its domain, the segments it maps are its own participant's
+        maps = open(f'/proc/{node.process.pid}/maps').read()
+        segments = set(re.findall(r'/dev/shm/fastrtps_[0-9a-f]{16}$', maps, re.MULTILINE))
+        if not segments:
+            pytest.skip('the node maps no Fast DDS segment (another RMW, or no shared memory)')
+        assert all(os.path.exists(path) for path in segments)
+        node.process.send_signal(signal.SIGINT)
+        assert node.process.wait(timeout=20) == 0
+    assert [path for path in segments if os.path.exists(path)] == []
 
 
 def test_run_node_ends_cleanly_when_ctrl_c_races_the_executor(monkeypatch):
@@ -164,10 +198,11 @@ def test_run_node_ends_cleanly_when_ctrl_c_races_the_executor(monkeypatch):
     assert not rclpy.ok()         # shut down on the way out all the same
 
 
-def test_spin_node_stops_the_nodes_work_and_leaves_its_entities_to_the_context(monkeypatch):
-    """On Ctrl-C the node's threads and child processes stop (stop_work); rclpy's
-    destroy_node is not called: it wakes the executor that rclpy's signal thread is
-    shutting down, and a node hung there (the accumulator, twice in benchmark replays)."""
+def test_spin_node_stops_the_nodes_work_and_leaves_its_entities_to_run_node(monkeypatch):
+    """On Ctrl-C the node's threads and child processes stop (stop_work); spin_node does not
+    destroy the node: rclpy's destroy_node wakes the executor that rclpy's signal thread is
+    shutting down, and a node hung there (the accumulator, twice in benchmark replays).
+    run_node destroys it afterwards, on a thread it does not wait for long."""
     import rclpy
 
     from skel_extract_ros.nodes.common import WorkingNode, spin_node
@@ -189,6 +224,42 @@ def test_spin_node_stops_the_nodes_work_and_leaves_its_entities_to_the_context(m
     monkeypatch.setattr(rclpy, 'spin', interrupted_spin)
     assert spin_node(lambda: Worked('worked')) == 0
     assert calls == ['stop_work'] and not rclpy.ok()
+
+
+def test_a_destruction_that_hangs_does_not_hold_the_exit(monkeypatch):
+    """run_node's release_entities destroys the node (rclpy's destroy_node, once: the
+    node's work stopped already) and returns True; when the destruction hangs it returns
+    False after its timeout, and the process can end all the same."""
+    import threading
+    import time
+
+    import rclpy
+    from rclpy.node import Node
+
+    from skel_extract_ros.nodes.common import WorkingNode, release_entities
+
+    rclpy.init()
+    try:
+        destroyed, stopped = [], []
+
+        class Worked(WorkingNode):
+            def stop_work(self):
+                stopped.append(True)
+
+        node = Worked('released')
+        original = Node.destroy_node
+        monkeypatch.setattr(Node, 'destroy_node', lambda self: destroyed.append(self) or original(self))
+        assert release_entities(node, timeout_s=10.0)
+        assert destroyed == [node] and stopped == []
+
+        hanging = threading.Event()
+        monkeypatch.setattr(Node, 'destroy_node', lambda self: hanging.wait(30.0))
+        started = time.monotonic()
+        assert not release_entities(Worked('hanging'), timeout_s=0.2)
+        assert time.monotonic() - started < 5.0
+        hanging.set()
+    finally:
+        rclpy.try_shutdown()
 
 
 EXIT_PROBE = '''

@@ -29,9 +29,9 @@ LATCHED_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=R
 
 
 class WorkingNode(Node):
-    """A node with threads or child processes of its own. `stop_work` stops them: run_node
-    calls it on the way out and leaves the ROS entities to the context (see there);
-    destroy_node (the in-process tests) stops them too, then destroys the entities."""
+    """A node with threads or child processes of its own. `stop_work` stops them: spin_node
+    calls it on the way out, once the executor stopped, and run_node destroys the ROS
+    entities after it (see there); destroy_node (the in-process tests) does both."""
 
     def stop_work(self) -> None:
         raise NotImplementedError
@@ -184,25 +184,60 @@ def release_freed_memory() -> None:
     getattr(libc(), 'malloc_trim', lambda _pad: None)(0)
 
 
+# how long a node process waits for its ROS entities to be destroyed on the way out
+# before it ends without (run_node)
+RELEASE_TIMEOUT_S = 5.0
+
+
 def run_node(node_factory, args=None) -> NoReturn:
-    """A node process's main: `spin_node`, then the process ends with its exit code
-    (`os._exit` once stdout and stderr are flushed) instead of leaving the ROS entities to
-    the interpreter's finalisation. Both ways of destroying them hung now and then: rclpy's
-    destroy_node wakes the executor, which rclpy's signal thread may be shutting down at
-    that moment after a Ctrl-C (the accumulator's main thread in Node._wake_executor), and
-    the garbage collector finalising them after main returned (a joint node in CI: its
-    only thread "Garbage-collecting", no Python frame; rclpy's Fast DDS destruction-order
-    hangs, ros2/rclpy#456, #470). Nothing is left to finalise that a user would miss: the
-    work threads are joined, the child processes reaped, the context shut down. An
-    exception escaping spin_node (a real failure) still gets its traceback and the
-    interpreter's own exit."""
+    """A node process's main: `spin_node`, then the node's ROS entities are destroyed on a
+    thread given RELEASE_TIMEOUT_S, and the process ends with its exit code (`os._exit` once
+    stdout and stderr are flushed) instead of leaving them to the interpreter's finalisation.
+
+    Why destroyed: the last node of a process holds its Fast DDS participant, and only
+    destroying it removes the participant's shared-memory segment (4 MB with the large-message
+    profile) from /dev/shm; a process that exits without it leaves the segment behind, in
+    memory, until the machine restarts (every Ctrl-C of a node, every replay and every test
+    that starts one). Why on a thread with a timeout: both ways of destroying them hung now
+    and then, rclpy's destroy_node woken into the executor that rclpy's signal thread was
+    shutting down after a Ctrl-C (the accumulator's main thread in Node._wake_executor), and
+    the garbage collector finalising them after main returned (a joint node in CI: its only
+    thread "Garbage-collecting", no Python frame; rclpy's Fast DDS destruction-order hangs,
+    ros2/rclpy#456, #470). A destruction that hangs costs the segment, not the exit. Nothing
+    else is left to finalise that a user would miss: the work threads are joined, the child
+    processes reaped, the context shut down. An exception escaping spin_node (a real
+    failure) still gets its traceback and the interpreter's own exit."""
     import os
     import sys
 
-    exit_code = spin_node(node_factory, args)
+    made = []
+
+    def remembered():
+        made.append(node_factory())
+        return made[-1]
+
+    exit_code = spin_node(remembered, args)
+    if made:
+        release_entities(made[0], RELEASE_TIMEOUT_S)
     sys.stdout.flush()
     sys.stderr.flush()
     os._exit(exit_code)
+
+
+def release_entities(node: Node, timeout_s: float) -> bool:
+    """Destroy the ROS entities of a node whose work has stopped (rclpy's Node.destroy_node,
+    not WorkingNode's: stop_work ran already) on a daemon thread, waiting at most timeout_s
+    s for it; True when it finished. An error there is a node on its way out: ignored."""
+    def destroy():
+        try:
+            Node.destroy_node(node)
+        except Exception:   # the context is down; whatever is left goes with the process
+            pass
+
+    thread = threading.Thread(target=destroy, name='release-entities', daemon=True)
+    thread.start()
+    thread.join(timeout_s)
+    return not thread.is_alive()
 
 
 def spin_node(node_factory, args=None) -> int:
@@ -212,7 +247,7 @@ def spin_node(node_factory, args=None) -> int:
     does not end or answer is doing (`skel-extract replay` sends it before killing a node
     that did not end on Ctrl-C). On the way out the node's own threads and child processes
     stop (`stop_work`) and the context shuts down; its ROS entities are left to the
-    context and the process (`run_node`)."""
+    caller (`run_node` destroys them)."""
     import faulthandler
     import signal
     import sys
