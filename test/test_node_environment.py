@@ -154,8 +154,8 @@ def test_a_node_writes_its_threads_stacks_on_sigusr1_and_goes_on(tmp_path):
 @pytest.mark.skipif(not os.path.isdir('/dev/shm'), reason='Fast DDS keeps its segments in /dev/shm')
 def test_a_node_ended_by_ctrl_c_leaves_no_shared_memory_segment(tmp_path):
     """Fast DDS's participant keeps a shared-memory segment in /dev/shm, and only destroying
-    the node removes it: a node that exited without (os._exit alone) left one per run,
-    4 GB on the development machine after a day of replays and test runs."""
+    the node removes it: a node that exited without (os._exit alone) left one in memory per
+    run, until the machine restarts."""
     import re
     import signal
     with _AccumulatorProcess(tmp_path) as node:
