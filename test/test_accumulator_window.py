@@ -108,8 +108,16 @@ def test_lossless_learns_every_window_that_comes_due_during_an_extraction(ros, m
         Parameter('window_size', value=10), Parameter('sliding', value=True), Parameter('stride', value=2),
         Parameter('n_clusters', value=12), Parameter('lossless', value=lossless)])
     publish_rest(ros, rest)
-    publish_frames(ros, registered, 0)
-    ros.wait(lambda: len(node.frames) == 10 and max(node.frames) == T0 + 17 * DT, what='every frame in')
+    publish_frames(ros, registered[:10], 0)
+    # the first window taken and held before the next frames come: otherwise, live, window 11
+    # can replace it in the queue before the extraction thread takes it (as it should)
+    ros.wait(lambda: node.extractor.stats()['busy'] and node.extractor.stats()['waiting'] == 0,
+             what='the first window held')
+    publish_frames(ros, registered[10:], 10)
+    # every frame in, and the last window submitted: a frame joins the window before the window
+    # it completes is submitted
+    ros.wait(lambda: len(node.frames) == 10 and max(node.frames) == T0 + 17 * DT
+             and node.extractor.submitted == 5, what='every frame in, windows 9 to 17 submitted')
     release.set()
     ros.wait(lambda: node.extractor.idle, what='the extractions')
     ends = [window[-1] for window in learned]
