@@ -11,6 +11,8 @@ import pytest
 from skel_extract_ros.core.bone_rotations import depth_first
 from skel_extract_ros.sim import NoiseModel, generate_sequence
 
+from ros_domains import private_domain
+
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SAMPLE_BAG = REPO_ROOT / 'bags' / 'sample_wave'
 # real data the tests that need it read (and skip without): SKEL_SHARED_DATA, else the
@@ -34,9 +36,8 @@ def run_cli(*args, timeout=900):
 def run_cli_private_domain(offset, *args, timeout=900):
     """run_cli for commands that start ROS nodes (replay), on a ROS domain of their own
     (`offset` keeps two such tests of one process apart) so parallel runs never mix."""
-    import os
     previous = os.environ.get('ROS_DOMAIN_ID')
-    os.environ['ROS_DOMAIN_ID'] = str(100 + (os.getpid() + offset) % 100)
+    os.environ['ROS_DOMAIN_ID'] = str(private_domain(offset))
     try:
         return run_cli(*args, timeout=timeout)
     finally:

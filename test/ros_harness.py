@@ -13,6 +13,8 @@ from std_msgs.msg import Header
 
 from skel_extract_ros.codecs.pointcloud import pointcloud2
 
+from ros_domains import private_domain
+
 # Stamps of the hand-made sequences: the first frame and the 30 Hz period, ns.
 T0 = 1_700_000_000_000_000_000
 DT = 33_333_333
@@ -29,7 +31,7 @@ class Harness:
         os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
         # private domain per test process so parallel runs and other graphs never mix
         self.context = rclpy.Context()
-        rclpy.init(context=self.context, domain_id=100 + os.getpid() % 100)
+        rclpy.init(context=self.context, domain_id=private_domain())
         self._stop = threading.Event()
         self._spinners = []
         self.nodes = []

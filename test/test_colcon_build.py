@@ -9,6 +9,8 @@ from pathlib import Path
 
 import pytest
 
+from ros_domains import private_domain
+
 REPO_ROOT = Path(__file__).resolve().parents[1]
 COLCON = shutil.which('colcon', path=str(Path(sys.executable).parent))
 IGNORED = shutil.ignore_patterns('.git', '.venv', 'build', 'install', 'log', 'out', '__pycache__',
@@ -51,7 +53,7 @@ def test_installed_nodes_come_up_and_shut_down_cleanly(colcon_install, name, tmp
     assert executable.is_file() and os.access(executable, os.X_OK)
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(str(p) for p in
                                                       colcon_install.glob('lib/python3*/site-packages')),
-               ROS_DOMAIN_ID=str(100 + os.getpid() % 100), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
+               ROS_DOMAIN_ID=str(private_domain()), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
                PYTHONUNBUFFERED='1')
     log = tmp_path / 'node.log'
     with open(log, 'w') as stream:

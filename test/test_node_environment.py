@@ -9,6 +9,8 @@ import xml.etree.ElementTree as ElementTree
 
 import pytest
 
+from ros_domains import private_domain
+
 PROBE = '''
 import os, sys
 start = len(os.listdir('/proc/self/task'))
@@ -111,7 +113,7 @@ class _AccumulatorProcess:
 
     def __init__(self, tmp_path):
         self.log_path = tmp_path / 'accumulator.log'
-        environment = dict(os.environ, ROS_DOMAIN_ID=str(100 + (os.getpid() + 91) % 100),
+        environment = dict(os.environ, ROS_DOMAIN_ID=str(private_domain(91)),
                            ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', PYTHONUNBUFFERED='1')
         with open(self.log_path, 'w') as log:
             self.process = subprocess.Popen([sys.executable, '-m', 'skel_extract_ros.nodes.accumulator_node'],
@@ -287,7 +289,7 @@ def test_a_node_process_ends_without_the_interpreters_finalisation(ending, code)
     """After Ctrl-C (or a parameter error) the node process ends in run_node with its exit
     code: what it printed is flushed, and nothing is left to the interpreter's finalisation
     (the garbage collector finalising rclpy's entities once hung a joint node in CI)."""
-    environment = dict(os.environ, ROS_DOMAIN_ID=str(100 + (os.getpid() + 17) % 100),
+    environment = dict(os.environ, ROS_DOMAIN_ID=str(private_domain(17)),
                        ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
     done = subprocess.run([sys.executable, '-c', EXIT_PROBE, ending], capture_output=True, text=True,
                           env=environment, timeout=60)
