@@ -202,18 +202,18 @@ def _camera_tracker(model, **kwargs):
     return CameraTracker(ArticulatedTracker(model, **kwargs), LiveJointTracker(model))
 
 
-def _late_registrations(model, registered, joint_path, reach, lag=10):
+def _late_registrations(model, registered, joint_path, reach, lag=10, camera=None):
     """Errors (m) of the child joint on frames lag.. when each frame is fitted from the
     registered frame `lag` to 2 lag - 1 frames older (the node's cadence)."""
     child = int(np.flatnonzero(model.parents >= 0)[0])
     observed = _observations(registered)
-    camera = _camera_tracker(model, reach=reach)
+    camera = camera or _camera_tracker(model, reach=reach)
     errors = []
     for frame in range(lag, len(registered)):
         newest = ((frame - lag) // lag) * lag
         camera.registered(newest, registered[newest])
         positions, outcome = camera.track(frame, observed[frame])
-        assert outcome == 'fitted'
+        assert outcome in ('fitted', 'chained')
         errors.append(np.linalg.norm(positions[child] - joint_path[frame]))
     return np.array(errors)
 
@@ -241,6 +241,51 @@ def test_camera_tracker_reaches_a_body_that_walked_since_its_registration(learne
     assert with_reach.mean() < 0.35 * without.mean(), (with_reach.mean(), without.mean())
 
 
+def _surface_errors(camera, registered, observed, lag=10):
+    """Mean distance (m) of the served pose's posed points from the true surface points, on
+    frames lag.. fitted while the registered frame is lag to 2 lag - 1 frames old."""
+    errors = []
+    for frame in range(lag, len(registered)):
+        newest = ((frame - lag) // lag) * lag
+        camera.registered(newest, registered[newest])
+        camera.track(frame, observed[frame])
+        errors.append(np.linalg.norm(camera.fit.deform(*camera.pose) - registered[frame], axis=1).mean())
+    return np.array(errors)
+
+
+def test_camera_tracker_chained_follows_a_limb_the_registered_pose_cannot_reach(learned):
+    """The child bone turns 0.6-0.8 rad over the clip while the registration is 10-19
+    frames old. Fitted from the registered pose alone the posed points are 59 mm from the
+    true surface on average (measured); with the chain (each frame also fitted from the
+    pose served for the frame before, the better supported fit served) 1.3 mm, 29 of the 30
+    frames served from the chain. Bound: 0.5 x."""
+    model, registered, _, _ = learned
+    observed = _observations(registered)
+    alone = _surface_errors(_camera_tracker(model), registered, observed)
+    camera = CameraTracker(ArticulatedTracker(model), LiveJointTracker(model), ArticulatedTracker(model))
+    chained = _surface_errors(camera, registered, observed)
+    assert chained.mean() < 0.5 * alone.mean(), (chained.mean(), alone.mean())
+    assert camera.counts['chained'] > 3 * camera.counts['fitted'], camera.counts
+
+
+def test_camera_tracker_serves_the_registered_start_when_the_chain_has_drifted(learned):
+    """A chain that drifted (here: seeded with a pose 17 frames away and given one EM
+    iteration, too few to come back) explains the frame worse than the fit from the
+    registered frame before it: that fit is served, and the chain starts again from it."""
+    model, registered, _, _ = learned
+    observed = _observations(registered)
+    fit = LiveJointTracker(model)
+    camera = CameraTracker(ArticulatedTracker(model), fit, ArticulatedTracker(model, iterations=1))
+    camera.registered(2, registered[2])
+    assert camera.track(3, observed[3])[1] in ('fitted', 'chained')
+    camera.chain.seed(*fit.fit(registered[20]))
+    positions, outcome = camera.track(4, observed[4])
+    assert outcome == 'fitted', camera.counts
+    assert np.linalg.norm(fit.deform(*camera.pose) - registered[4], axis=1).mean() < 0.01
+    # the chain now starts from the served pose: it is served again once it fits as well
+    np.testing.assert_allclose(camera.chain.predict()[1], camera.pose[1], atol=1e-12)
+
+
 def test_camera_tracker_gives_the_registered_pose_when_the_fit_diverges(learned):
     model, registered, _, _ = learned
     observed = _observations(registered)
@@ -264,7 +309,7 @@ def test_camera_tracker_gives_the_registered_pose_when_the_fit_diverges(learned)
     positions, outcome = camera.track(12, observed[12])
     assert outcome == 'registered'
     np.testing.assert_allclose(positions, camera.fit.track(registered[12]), atol=1e-12)
-    assert camera.counts == {'fitted': 9, 'lost': 1, 'registered': 1}
+    assert camera.counts == {'fitted': 9, 'chained': 0, 'lost': 1, 'registered': 1}
     # the posed model (where the registration may start) only after a fitted frame
     assert camera.posed_points() is None
     camera.track(13, observed[13])

@@ -87,8 +87,13 @@ class JointNodeParams:
     live_iterations: int = parameter(3, 'EM iterations of the live fit to a camera frame (each: the whole-body '
                                      "move, then the bone-by-bone update with the joint weight growing to Alg. 2's "
                                      'at the last)', 1, 100, live=True)
-    live_sweeps: int = parameter(2, 'live per-frame fit: bone-by-bone passes after the rigid initialisation', 0, 100,
+    live_sweeps: int = parameter(2, "the fit of each registered frame (live_frames registered, and the camera "
+                                 "frames' start): bone-by-bone passes after the rigid initialisation", 0, 100,
                                  live=True)
+    live_chain: bool = parameter(True, 'with live_frames camera: each camera frame is also fitted from the pose '
+                                 'served for the frame before, and the fit whose joints its points support better '
+                                 '(the higher mean confidence) is served. false: from the newest registered pose '
+                                 'only, one fit a frame instead of two', live=True)
     provisional_skeleton: bool = parameter(True, "with live_frames camera: track Step 2's skeleton (each point on "
                                            'its bone) as soon as a structure arrives, described with provisional '
                                            "true, while Alg. 2 runs; Alg. 2's model then replaces it under the same "
@@ -139,4 +144,4 @@ NODES = {
 LIVE_FROM = {'accumulator_node': 'the next registered frame',
              'joint_estimation_node': 'the next frame (joint_diameter, live_iterations, live_sweeps, buffer_size) '
                                       "or the next skeleton/structure (the method's parameters, "
-                                      'provisional_skeleton)'}
+                                      'provisional_skeleton, live_chain)'}

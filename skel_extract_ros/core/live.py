@@ -348,25 +348,35 @@ class CameraTracker:
     """Joints for every camera frame of a fixed SkeletonModel (the joint node's live path).
 
     Each camera frame is fitted from its observed points alone, started from the model's
-    fit of the newest registered frame at or before it (the registration answers about
-    once a second once a skeleton is tracked: that pose is up to a second old, and the
-    fit's reach carries body and limbs to where the points are now). A frame whose fit
-    diverges (ArticulatedTracker.diverged: it explains the data far worse than the recent
-    frames) gets the registered pose's joints instead. Not carried from frame to frame: a
-    fit carried between registrations drifts.
+    fit of the newest registered frame at or before it (the registration answers every
+    8-90 frames once a skeleton is tracked, by the machine: that pose is up to seconds old,
+    and the fit's reach carries body and limbs to where the points are now). With a
+    `chain` tracker the frame is also fitted from the pose served for the frame before
+    (its constant-velocity prediction), and the fit whose joints the frame's points
+    support better (the higher mean confidence, core.confidence: the residual and the
+    silhouette) is served. Why both: from the registered pose a hand that moved 40-90 cm
+    since is out of reach; a fit carried from frame to frame alone drifts (a walker's
+    legs), and a drifted pose leaves the silhouette or the points, which the confidence
+    sees. A fit that diverges (ArticulatedTracker.diverged: it explains the data far worse
+    than the recent frames) is no candidate; with none, the frame gets the registered
+    pose's joints.
 
-    tracker: the ArticulatedTracker; fit: a LiveJointTracker of the same model (registered
-    points -> bone transforms). Stamps are integers (ns).
+    tracker: the ArticulatedTracker started from the registered pose; fit: a
+    LiveJointTracker of the same model (registered points -> bone transforms); chain: a
+    second ArticulatedTracker of the model, or None (one fit a frame). Stamps are integers
+    (ns).
     """
 
-    def __init__(self, tracker: ArticulatedTracker, fit: LiveJointTracker):
-        if fit.n_bones != tracker.n_bones:
-            raise ValueError(f'the registered-frame fit has {fit.n_bones} bones, the tracker {tracker.n_bones}')
-        self.tracker, self.fit = tracker, fit
+    def __init__(self, tracker: ArticulatedTracker, fit: LiveJointTracker, chain: ArticulatedTracker | None = None):
+        for other in (fit, chain):
+            if other is not None and other.n_bones != tracker.n_bones:
+                raise ValueError(f'the trackers have {other.n_bones} and {tracker.n_bones} bones')
+        self.tracker, self.fit, self.chain = tracker, fit, chain
         self._registered = None                      # (stamp, rotations, translations), newest
         self._fitted = None                          # the last frame's fitted transforms, if fitted
         self.pose = None                             # the last frame's served transforms (any outcome)
-        self.counts = {'fitted': 0, 'lost': 0, 'registered': 0}
+        self.confidence = None                       # (J,) the served pose's, against the last frame's points
+        self.counts = {'fitted': 0, 'chained': 0, 'lost': 0, 'registered': 0}
 
     def registered(self, stamp: int, registered_points: np.ndarray) -> None:
         """Take the registered frame at `stamp` (registered_points (M, 3) m, the model's
@@ -379,21 +389,38 @@ class CameraTracker:
     def track(self, stamp: int, observed: np.ndarray) -> tuple:
         """(positions (J, 3) m, outcome) for the camera frame at `stamp` with observed (N, 3)
         subject points: outcome 'registered' (its own registered frame is in: its fit),
-        'fitted', or 'lost' (the fit diverged: the newest registered pose's joints). Raises
-        ValueError before any registered frame, and as ArticulatedTracker.fit on bad points."""
+        'fitted' (from the registered pose), 'chained' (from the last frame's pose), or
+        'lost' (no fit converged: the newest registered pose's joints). Sets `pose` and
+        `confidence` (the served pose's). Raises ValueError before any registered frame,
+        and as ArticulatedTracker.fit on bad points."""
         if self._registered is None:
             raise ValueError('no registered frame yet: nothing to start the live fit from')
         registered_stamp, rotations, translations = self._registered
-        if registered_stamp == int(stamp):
-            outcome = 'registered'
-        else:
+        outcome = 'registered'
+        confidence = None
+        if registered_stamp != int(stamp):
             self.tracker.seed(rotations, translations)
-            fitted = self.tracker.fit(observed)
-            outcome = 'lost' if self.tracker.diverged else 'fitted'
-            if outcome == 'fitted':
-                rotations, translations = fitted
-        self._fitted = (rotations, translations) if outcome == 'fitted' else None
-        self.pose = (rotations, translations)
+            candidates = [('fitted', self.tracker)]
+            if self.chain is not None and self.pose is not None:
+                candidates.append(('chained', self.chain))
+            best = -1.0
+            for name, tracker in candidates:     # one or two fits
+                fitted = tracker.fit(observed)
+                if tracker.diverged:
+                    continue
+                scores = self.tracker.confidence(*fitted, observed, corresponding=False)
+                if scores.mean() > best:
+                    outcome, (rotations, translations), confidence, best = name, fitted, scores, scores.mean()
+            if best < 0.0:
+                outcome = 'lost'
+        if confidence is None:
+            # the registered pose served: what it explains of this frame
+            confidence = self.tracker.confidence(rotations, translations, observed, corresponding=False)
+        if self.chain is not None and outcome != 'chained':
+            # the next frame's second start is the pose served now (its velocity unknown)
+            self.chain.seed(rotations, translations)
+        self._fitted = (rotations, translations) if outcome in ('fitted', 'chained') else None
+        self.pose, self.confidence = (rotations, translations), confidence
         self.counts[outcome] += 1
         return self.fit.joints_of(rotations, translations), outcome
 

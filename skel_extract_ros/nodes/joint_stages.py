@@ -40,7 +40,7 @@ class JointStages:
         self.params, self.output, self.publish_posed = params, output, publish_posed
         self.log, self.logger, self.context_ok = log, logger, context_ok
         self.buffer_size, self.live_sweeps = settings.buffer_size, settings.live_sweeps
-        self.provisional_skeleton = settings.provisional_skeleton
+        self.provisional_skeleton, self.live_chain = settings.provisional_skeleton, settings.live_chain
         self.live_frames, self.live_iterations = settings.live_frames, settings.live_iterations
         self._lock = threading.Lock()
         self.rest, self.rest_stamp = None, None
@@ -63,21 +63,24 @@ class JointStages:
                                 on_error=self._estimation_failed, niceness=settings.estimation_niceness)
         self.live_ms = collections.deque(maxlen=1000)      # per live frame fit
         self.joints_rate = RateMeter()
-        self.live_fits = {'fitted': 0, 'lost': 0, 'registered': 0, 'too_few_points': 0}
+        self.live_fits = {'fitted': 0, 'chained': 0, 'lost': 0, 'registered': 0, 'too_few_points': 0}
         self.live = Worker(self._live_camera_frame, 'live', capacity=1, on_error=self._live_failed)
 
     def apply(self, params, settings) -> None:
-        """New parameters (`ros2 param set`): the method's and provisional_skeleton from the
-        next structure (Alg. 2 and the trackers of the model it gives), the rest from the
-        next frame."""
+        """New parameters (`ros2 param set`): the method's, provisional_skeleton and
+        live_chain from the next structure (Alg. 2 and the trackers of the model it gives),
+        the rest from the next frame."""
         with self._lock:
             self.params = params
             self.buffer_size, self.provisional_skeleton = settings.buffer_size, settings.provisional_skeleton
+            self.live_chain = settings.live_chain
             self.live_sweeps, self.live_iterations = settings.live_sweeps, settings.live_iterations
             self.output.joint_diameter = float(settings.joint_diameter)
             if self.tracker is not None:       # the model tracked now, from its next frame
                 self.tracker.sweeps = self.live_sweeps
-                self.camera_tracker.tracker.iterations = self.live_iterations
+                for tracker in (self.camera_tracker.tracker, self.camera_tracker.chain):
+                    if tracker is not None:
+                        tracker.iterations = self.live_iterations
 
     @property
     def estimating(self) -> bool:
@@ -245,7 +248,8 @@ class JointStages:
                                    'is not used')
             return
         tracker = LiveJointTracker(model, self.params, self.live_sweeps)
-        camera = CameraTracker(ArticulatedTracker(model, self.params, iterations=self.live_iterations), tracker)
+        chain = ArticulatedTracker(model, self.params, iterations=self.live_iterations) if self.live_chain else None
+        camera = CameraTracker(ArticulatedTracker(model, self.params, iterations=self.live_iterations), tracker, chain)
         window = [(stamp, header, *self._registered_outputs(model, tracker, registered, rotations, translations,
                                                             observed))
                   for stamp, (header, registered, observed), rotations, translations
@@ -343,11 +347,9 @@ class JointStages:
         positions, outcome = camera.track(stamp, observed)
         self.live_fits[outcome] += 1
         self.live_ms.append(1000.0 * (time.perf_counter() - started))
-        rotations, translations = camera.pose
         # the fit's own bone rotations give the twist; the confidence is the served pose's
         # against this frame's points (a lost frame's registered pose scores what it explains)
-        self._publish_joints(described, header, positions, rotations,
-                             camera.tracker.confidence(rotations, translations, observed, corresponding=False))
+        self._publish_joints(described, header, positions, camera.pose[0], camera.confidence)
         posed = camera.posed_points()
         if posed is not None:
             self.publish_posed(posed, header)
