@@ -3,7 +3,7 @@ observed subject points (core.live.CameraTracker), against the offline joints, a
 joint node does it (live_frames camera).
 
     python bench/bench_live.py [--only wave,punch] [--scenes empty,room] [--frames 90]
-                               [--iterations 3] [--sweeps 1] [--lag 30] [--schemes reach,bones]
+                               [--iterations 3] [--sweeps 1] [--lag 30] [--schemes chain,reach,bones]
                                [--work DIR]
 
 For each real clip ($SKEL_SHARED_DATA, as bench_real_motion.py): simulate the bag (kept in
@@ -13,10 +13,13 @@ those). Then the node's live
 scheme: the registration takes every `--lag`-th frame and answers `--lag` frames later
 (30: a registration a second at 30 Hz, as the node once tracking; 3 was this bench's
 cadence before); every camera frame is fitted from its observed points alone, started
-from the model's fit of the newest registered frame it has. Schemes: `reach` (the node:
-the whole-body move and the joint weight ramp in each EM iteration, the registered pose
-for a diverged fit) and `bones` (the node before: bone-by-bone updates at Alg. 2's joint
-weight only, the registered pose for a frame with a bone without data).
+from the model's fit of the newest registered frame it has. Schemes: `chain` (the node,
+`live_chain`: each frame also fitted from the pose served for the frame before, the fit
+with the higher mean confidence served), `reach` (the node with `live_chain` false: from
+the registered pose only, the whole-body move and the joint weight ramp in each EM
+iteration, the registered pose for a diverged fit) and `bones` (the node before that:
+bone-by-bone updates at Alg. 2's joint weight only, the registered pose for a frame with
+a bone without data). `--sweeps 1` is the node's camera-frame fit.
 Printed per row: live vs offline joints on the same frames (median, p95, on Alg. 2's key
 frames and on all), the same for holding the registered pose's joints (what waiting for
 the registration gives), the ground-truth scores, the frames that got the registered pose
@@ -93,14 +96,16 @@ def live_row(bag: Path, iterations: int, sweeps: int, lag: int, scheme: str) -> 
     live = np.full((len(scored), model.n_joints, 3), np.nan)
     held = np.full_like(live, np.nan)
     seconds, lost = [], 0
-    # reach: the joint node's scheme (core.live.CameraTracker); bones: the node before
-    # (no reach, the registered pose for any frame the fit reports lost)
-    tracker = ArticulatedTracker(model, params, sweeps=sweeps, iterations=iterations, reach=scheme == 'reach')
-    camera = CameraTracker(tracker, registered_fit)
+    # chain and reach: the joint node's schemes (core.live.CameraTracker, with and without
+    # live_chain); bones: the node before (no reach, the registered pose for any frame the
+    # fit reports lost)
+    tracker = ArticulatedTracker(model, params, sweeps=sweeps, iterations=iterations, reach=scheme != 'bones')
+    chain = ArticulatedTracker(model, params, sweeps=sweeps, iterations=iterations) if scheme == 'chain' else None
+    camera = CameraTracker(tracker, registered_fit, chain)
     for row, (index, seed) in enumerate(zip(scored, seeds)):
         held[row] = registered_fit.joints_of(*pose(seed))
         started = time.perf_counter()
-        if scheme == 'reach':
+        if scheme != 'bones':
             camera.registered(int(seed), registered[seed])
             live[row], outcome = camera.track(int(index), observed[index])
             lost += outcome == 'lost'
@@ -138,10 +143,12 @@ def main(argv=None) -> int:
     parser.add_argument('--iterations', type=int, default=3)
     parser.add_argument('--sweeps', type=int, default=1)
     parser.add_argument('--lag', type=int, default=30)
-    parser.add_argument('--schemes', default='reach,bones',
-                        help='reach: the joint node (core.live.CameraTracker: whole-body move and joint weight '
-                             'ramp, the registered pose when the fit diverges); bones: the node before (bone-by-bone '
-                             'updates at Alg. 2\'s joint weight, the registered pose when a bone has no data)')
+    parser.add_argument('--schemes', default='chain,reach',
+                        help='chain: the joint node (core.live.CameraTracker with live_chain: also fitted from the '
+                             'last served pose, the better supported fit served); reach: from the registered pose '
+                             'only (whole-body move and joint weight ramp, the registered pose when the fit '
+                             'diverges); bones: the node before (bone-by-bone updates at Alg. 2\'s joint weight, the '
+                             'registered pose when a bone has no data)')
     parser.add_argument('--work', type=Path)
     args = parser.parse_args(argv)
     work = args.work or Path(tempfile.mkdtemp(prefix='bench_live_'))

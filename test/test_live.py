@@ -286,6 +286,22 @@ def test_camera_tracker_serves_the_registered_start_when_the_chain_has_drifted(l
     np.testing.assert_allclose(camera.chain.predict()[1], camera.pose[1], atol=1e-12)
 
 
+def test_camera_tracker_leaves_the_second_fit_out_when_the_frame_has_no_time_for_it(learned):
+    """A deadline already passed: every frame is fitted from the registered pose alone (one
+    fit, as without a chain) and the skipped second fits are counted; without a deadline
+    the chain is fitted again."""
+    import time
+    model, registered, _, _ = learned
+    observed = _observations(registered)
+    camera = CameraTracker(ArticulatedTracker(model), LiveJointTracker(model), ArticulatedTracker(model))
+    camera.registered(0, registered[0])
+    for frame in range(1, 6):
+        assert camera.track(frame, observed[frame], deadline=time.perf_counter())[1] == 'fitted'
+    assert camera.chain_skipped == 4 and camera.counts['chained'] == 0      # the first frame has no chain yet
+    camera.track(6, observed[6])
+    assert camera.chain_skipped == 4 and camera.counts['fitted'] + camera.counts['chained'] == 6
+
+
 def test_camera_tracker_gives_the_registered_pose_when_the_fit_diverges(learned):
     model, registered, _, _ = learned
     observed = _observations(registered)
@@ -316,3 +332,13 @@ def test_camera_tracker_gives_the_registered_pose_when_the_fit_diverges(learned)
     rotations, translations = camera.tracker._history[-1]
     np.testing.assert_allclose(camera.posed_points(), camera.fit.deform(rotations, translations), atol=1e-12)
     assert camera.posed_points().shape == registered[13].shape
+
+
+def test_the_camera_period_is_the_median_interval_of_the_stamps():
+    """The joint node's deadline for a camera frame: its period from the stamps, a dropped
+    frame (a double interval), a repeated stamp and one going backwards left out of it."""
+    from skel_extract_ros.nodes.joint_stages import camera_period
+    assert camera_period([]) is None and camera_period([5]) is None
+    stamps = [0, 33_000_000, 66_000_000, 132_000_000, 132_000_000, 100_000_000, 133_000_000, 166_000_000]
+    assert camera_period(stamps) == 0.033
+

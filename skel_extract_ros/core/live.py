@@ -44,6 +44,8 @@ second old once tracking), a diverged frame gets that registered pose.
 """
 from __future__ import annotations
 
+import time
+
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -359,7 +361,9 @@ class CameraTracker:
     legs), and a drifted pose leaves the silhouette or the points, which the confidence
     sees. A fit that diverges (ArticulatedTracker.diverged: it explains the data far worse
     than the recent frames) is no candidate; with none, the frame gets the registered
-    pose's joints.
+    pose's joints. Given a deadline, the second fit is made only when the time the last
+    one and its confidence took still fits before it (a machine that cannot fit twice a
+    frame answers every frame from the registered pose rather than fewer frames).
 
     tracker: the ArticulatedTracker started from the registered pose; fit: a
     LiveJointTracker of the same model (registered points -> bone transforms); chain: a
@@ -377,6 +381,8 @@ class CameraTracker:
         self.pose = None                             # the last frame's served transforms (any outcome)
         self.confidence = None                       # (J,) the served pose's, against the last frame's points
         self.counts = {'fitted': 0, 'chained': 0, 'lost': 0, 'registered': 0}
+        self.chain_skipped = 0                       # frames whose second fit the deadline left out
+        self._chain_seconds = 0.0                    # the last second fit's time, with its confidence
 
     def registered(self, stamp: int, registered_points: np.ndarray) -> None:
         """Take the registered frame at `stamp` (registered_points (M, 3) m, the model's
@@ -386,13 +392,14 @@ class CameraTracker:
         if self._registered is None or stamp > self._registered[0]:
             self._registered = (stamp, *self.fit.fit(registered_points))
 
-    def track(self, stamp: int, observed: np.ndarray) -> tuple:
+    def track(self, stamp: int, observed: np.ndarray, deadline: float | None = None) -> tuple:
         """(positions (J, 3) m, outcome) for the camera frame at `stamp` with observed (N, 3)
         subject points: outcome 'registered' (its own registered frame is in: its fit),
         'fitted' (from the registered pose), 'chained' (from the last frame's pose), or
-        'lost' (no fit converged: the newest registered pose's joints). Sets `pose` and
-        `confidence` (the served pose's). Raises ValueError before any registered frame,
-        and as ArticulatedTracker.fit on bad points."""
+        'lost' (no fit converged: the newest registered pose's joints). deadline: a
+        time.perf_counter() value the frame should be done by (None: no limit). Sets `pose`
+        and `confidence` (the served pose's). Raises ValueError before any registered
+        frame, and as ArticulatedTracker.fit on bad points."""
         if self._registered is None:
             raise ValueError('no registered frame yet: nothing to start the live fit from')
         registered_stamp, rotations, translations = self._registered
@@ -405,11 +412,17 @@ class CameraTracker:
                 candidates.append(('chained', self.chain))
             best = -1.0
             for name, tracker in candidates:     # one or two fits
-                fitted = tracker.fit(observed)
-                if tracker.diverged:
+                started = time.perf_counter()
+                if name == 'chained' and deadline is not None and started + self._chain_seconds > deadline:
+                    self.chain_skipped += 1
                     continue
-                scores = self.tracker.confidence(*fitted, observed, corresponding=False)
-                if scores.mean() > best:
+                fitted = tracker.fit(observed)
+                scores = None if tracker.diverged else self.tracker.confidence(*fitted, observed, corresponding=False)
+                if name == 'chained':
+                    self._chain_seconds = time.perf_counter() - started
+                elif self._chain_seconds == 0.0:
+                    self._chain_seconds = time.perf_counter() - started      # until a second fit is timed
+                if scores is not None and scores.mean() > best:
                     outcome, (rotations, translations), confidence, best = name, fitted, scores, scores.mean()
             if best < 0.0:
                 outcome = 'lost'

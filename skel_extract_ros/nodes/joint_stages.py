@@ -29,6 +29,8 @@ from .worker import LOSSLESS_CAPACITY, RateMeter, Worker
 
 # structures whose moved joints wait for a description, at most (Alg. 2 failing on each)
 MAX_UNDESCRIBED = 32
+# the camera's frame period is the median interval of this many newest frames' stamps
+CAMERA_PERIOD_FRAMES = 30
 
 
 class JointStages:
@@ -63,7 +65,9 @@ class JointStages:
                                 on_error=self._estimation_failed, niceness=settings.estimation_niceness)
         self.live_ms = collections.deque(maxlen=1000)      # per live frame fit
         self.joints_rate = RateMeter()
-        self.live_fits = {'fitted': 0, 'chained': 0, 'lost': 0, 'registered': 0, 'too_few_points': 0}
+        self.live_fits = {'fitted': 0, 'chained': 0, 'lost': 0, 'registered': 0, 'too_few_points': 0,
+                          'chain_skipped': 0}
+        self._camera_stamps = collections.deque(maxlen=CAMERA_PERIOD_FRAMES + 1)   # the newest frames' stamps, ns
         self.live = Worker(self._live_camera_frame, 'live', capacity=1, on_error=self._live_failed)
 
     def apply(self, params, settings) -> None:
@@ -120,8 +124,11 @@ class JointStages:
         """A camera frame's subject points (N, 3): paired with its registered frame for Alg.
         2, and fitted live (live_frames camera)."""
         self._pair(1, header, points)
+        arrived = time.perf_counter()
+        with self._lock:
+            self._camera_stamps.append(stamp_ns(header))
         if self.live_frames == 'camera' and self.tracker is not None:
-            if self.live.submit((header, points)):
+            if self.live.submit((header, points, arrived)):
                 stats = self.live.stats()
                 self.log.warn('live_skipped', f'the live fit is slower than the camera: {stats["dropped"]} '
                                               f'frame(s) skipped so far (median {stats["latency_ms_median"]:.0f} '
@@ -325,9 +332,10 @@ class JointStages:
 
     def _live_camera_frame(self, item) -> None:
         """Joints for one camera frame (live_frames camera), on the live Worker."""
-        header, observed = item
+        header, observed, arrived = item
         stamp = stamp_ns(header)
         with self._lock:
+            period = camera_period(self._camera_stamps)
             if self.tracker is None or (self.last_published is not None and stamp <= self.last_published):
                 return
             newest = [s for s in self.registered_only if s <= stamp]
@@ -344,8 +352,11 @@ class JointStages:
                                         'points: no live joints (subject out of view?)')
             self.live_fits['too_few_points'] += 1
             return
-        positions, outcome = camera.track(stamp, observed)
+        # done before the next frame comes: a second fit that does not fit in the camera's
+        # period would cost frames (CameraTracker)
+        positions, outcome = camera.track(stamp, observed, None if period is None else arrived + period)
         self.live_fits[outcome] += 1
+        self.live_fits['chain_skipped'] = camera.chain_skipped
         self.live_ms.append(1000.0 * (time.perf_counter() - started))
         # the fit's own bone rotations give the twist; the confidence is the served pose's
         # against this frame's points (a lost frame's registered pose scores what it explains)
@@ -355,7 +366,7 @@ class JointStages:
             self.publish_posed(posed, header)
 
     def _live_failed(self, item, error) -> None:
-        """item: (header, points) of the camera frame whose fit or publish raised."""
+        """item: (header, points, arrival time) of the camera frame whose fit or publish raised."""
         if not self.context_ok():
             return   # Ctrl-C closed the context under a frame in progress: its publish failed
         self.log.warn('live_failed', f'live joints for the camera frame at {stamp_ns(item[0]) * 1e-9:.3f} s '
@@ -365,3 +376,12 @@ class JointStages:
         """positions (J, 3) m; hints (B, 3, 3) the fit's bone rotations; confidence (J,)."""
         self.joints_rate.tick()
         self.output.publish(described, header, positions, hints, confidence)
+
+
+def camera_period(stamps) -> float | None:
+    """The camera's frame period (s): the median interval of consecutive stamps (ns, in
+    arrival order), intervals that go backwards or stand still left out; None before two
+    frames."""
+    intervals = np.diff(np.asarray(stamps, dtype=np.int64))
+    intervals = intervals[intervals > 0]
+    return float(np.median(intervals)) * 1e-9 if len(intervals) else None
