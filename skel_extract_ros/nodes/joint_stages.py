@@ -354,9 +354,10 @@ class JointStages:
             return
         # done before the next frame comes: a second fit that does not fit in the camera's
         # period would cost frames (CameraTracker)
+        skipped = camera.chain_skipped
         positions, outcome = camera.track(stamp, observed, None if period is None else arrived + period)
         self.live_fits[outcome] += 1
-        self.live_fits['chain_skipped'] = camera.chain_skipped
+        self.live_fits['chain_skipped'] += camera.chain_skipped - skipped
         self.live_ms.append(1000.0 * (time.perf_counter() - started))
         # the fit's own bone rotations give the twist; the confidence is the served pose's
         # against this frame's points (a lost frame's registered pose scores what it explains)
