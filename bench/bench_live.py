@@ -13,10 +13,10 @@ those). Then the node's live
 scheme: the registration takes every `--lag`-th frame and answers `--lag` frames later
 (30: a registration a second at 30 Hz, as the node once tracking; 3 was this bench's
 cadence before); every camera frame is fitted from its observed points alone, started
-from the model's fit of the newest registered frame it has. Schemes: `chain` (the node,
-`live_chain`: each frame also fitted from the pose served for the frame before, the fit
-with the higher mean confidence served), `reach` (the node with `live_chain` false: from
-the registered pose only, the whole-body move and the joint weight ramp in each EM
+from the model's fit of the newest registered frame it has. Schemes: `chain` (the node
+with `live_chain: true`: each frame also fitted from the pose served for the frame before,
+the fit with the higher mean confidence served, no deadline), `reach` (the node's default:
+from the registered pose only, the whole-body move and the joint weight ramp in each EM
 iteration, the registered pose for a diverged fit) and `bones` (the node before that:
 bone-by-bone updates at Alg. 2's joint weight only, the registered pose for a frame with
 a bone without data). `--sweeps 1` is the node's camera-frame fit.
@@ -144,9 +144,9 @@ def main(argv=None) -> int:
     parser.add_argument('--sweeps', type=int, default=1)
     parser.add_argument('--lag', type=int, default=30)
     parser.add_argument('--schemes', default='chain,reach',
-                        help='chain: the joint node (core.live.CameraTracker with live_chain: also fitted from the '
-                             'last served pose, the better supported fit served); reach: from the registered pose '
-                             'only (whole-body move and joint weight ramp, the registered pose when the fit '
+                        help='chain: the joint node with live_chain (core.live.CameraTracker: also fitted from the '
+                             'last served pose, the better supported fit served); reach: its default, from the '
+                             'registered pose only (whole-body move and joint weight ramp, the registered pose when the fit '
                              'diverges); bones: the node before (bone-by-bone updates at Alg. 2\'s joint weight, the '
                              'registered pose when a bone has no data)')
     parser.add_argument('--work', type=Path)
