@@ -147,8 +147,8 @@ def main(argv=None) -> int:
                         help='chain: the joint node with live_chain (core.live.CameraTracker: also fitted from the '
                              'last served pose, the better supported fit served); reach: its default, from the '
                              'registered pose only (whole-body move and joint weight ramp, the registered pose when '
-                             'the fit diverges); bones: the node before (bone-by-bone updates at Alg. 2\'s joint weight, the '
-                             'registered pose when a bone has no data)')
+                             'the fit diverges); bones: the node before (bone-by-bone updates at Alg. 2\'s joint '
+                             'weight, the registered pose when a bone has no data)')
     parser.add_argument('--work', type=Path)
     args = parser.parse_args(argv)
     work = args.work or Path(tempfile.mkdtemp(prefix='bench_live_'))
