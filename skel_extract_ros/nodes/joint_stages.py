@@ -123,8 +123,8 @@ class JointStages:
     def filtered(self, header, points: np.ndarray) -> None:
         """A camera frame's subject points (N, 3): paired with its registered frame for Alg.
         2, and fitted live (live_frames camera)."""
+        arrived = time.perf_counter()       # the frame's deadline counts from here
         self._pair(1, header, points)
-        arrived = time.perf_counter()
         with self._lock:
             self._camera_stamps.append(stamp_ns(header))
         if self.live_frames == 'camera' and self.tracker is not None:
