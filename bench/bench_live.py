@@ -13,10 +13,11 @@ those). Then the node's live
 scheme: the registration takes every `--lag`-th frame and answers `--lag` frames later
 (30: a registration a second at 30 Hz, as the node once tracking; 3 was this bench's
 cadence before); every camera frame is fitted from its observed points alone, started
-from the model's fit of the newest registered frame it has. Schemes: `chain` (the node
-with `live_chain: true`: each frame also fitted from the pose served for the frame before,
-the fit with the higher mean confidence served, no deadline), `reach` (the node's default:
-from the registered pose only, the whole-body move and the joint weight ramp in each EM
+from the model's fit of the newest registered frame it has. Schemes: `chain` (the node's
+default, `live_chain`: each frame also fitted from the pose served for the frame before,
+each of the two fits on half the points of one, the fit with the higher mean confidence
+served; here with no deadline), `reach` (`live_chain: false`: from the registered pose
+only, on all the points, the whole-body move and the joint weight ramp in each EM
 iteration, the registered pose for a diverged fit) and `bones` (the node before that:
 bone-by-bone updates at Alg. 2's joint weight only, the registered pose for a frame with
 a bone without data). `--sweeps 1` is the node's camera-frame fit.
@@ -45,7 +46,7 @@ sys.path.insert(0, str(REPO / 'bench'))
 from bench_real_motion import CLI, subjects  # noqa: E402
 
 from skel_extract_ros.codecs.bag import read_cloud_frames, select_cloud_topic  # noqa: E402
-from skel_extract_ros.core.live import ArticulatedTracker, CameraTracker, LiveJointTracker  # noqa: E402
+from skel_extract_ros.core.live import CameraTracker, LiveJointTracker  # noqa: E402
 from skel_extract_ros.core.pipeline import SkeletonPipeline  # noqa: E402
 from skel_extract_ros.app.evaluation import GroundTruth, PredictedSkeleton, evaluate_joints  # noqa: E402
 
@@ -99,9 +100,9 @@ def live_row(bag: Path, iterations: int, sweeps: int, lag: int, scheme: str) -> 
     # chain and reach: the joint node's schemes (core.live.CameraTracker, with and without
     # live_chain); bones: the node before (no reach, the registered pose for any frame the
     # fit reports lost)
-    tracker = ArticulatedTracker(model, params, sweeps=sweeps, iterations=iterations, reach=scheme != 'bones')
-    chain = ArticulatedTracker(model, params, sweeps=sweeps, iterations=iterations) if scheme == 'chain' else None
-    camera = CameraTracker(tracker, registered_fit, chain)
+    camera = CameraTracker.for_model(model, params, registered_fit, iterations, chain=scheme == 'chain', sweeps=sweeps,
+                                     reach=scheme != 'bones')
+    tracker = camera.tracker
     for row, (index, seed) in enumerate(zip(scored, seeds)):
         held[row] = registered_fit.joints_of(*pose(seed))
         started = time.perf_counter()
@@ -144,11 +145,12 @@ def main(argv=None) -> int:
     parser.add_argument('--sweeps', type=int, default=1)
     parser.add_argument('--lag', type=int, default=30)
     parser.add_argument('--schemes', default='chain,reach',
-                        help='chain: the joint node with live_chain (core.live.CameraTracker: also fitted from the '
-                             'last served pose, the better supported fit served); reach: its default, from the '
-                             'registered pose only (whole-body move and joint weight ramp, the registered pose when '
-                             'the fit diverges); bones: the node before (bone-by-bone updates at Alg. 2\'s joint '
-                             'weight, the registered pose when a bone has no data)')
+                        help='chain: the joint node\'s default, live_chain (core.live.CameraTracker: also fitted '
+                             'from the last served pose, each fit on half the points, the better supported fit '
+                             'served); reach: live_chain false, from the registered pose only (whole-body move and '
+                             'joint weight ramp, the registered pose when the fit diverges); bones: the node before '
+                             '(bone-by-bone updates at Alg. 2\'s joint weight, the registered pose when a bone has '
+                             'no data)')
     parser.add_argument('--work', type=Path)
     args = parser.parse_args(argv)
     work = args.work or Path(tempfile.mkdtemp(prefix='bench_live_'))

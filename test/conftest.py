@@ -11,7 +11,7 @@ import pytest
 from skel_extract_ros.core.bone_rotations import depth_first
 from skel_extract_ros.sim import NoiseModel, generate_sequence
 
-from ros_domains import private_domain
+from ros_domains import private_environment
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SAMPLE_BAG = REPO_ROOT / 'bags' / 'sample_wave'
@@ -29,22 +29,14 @@ def sample_bag() -> Path:
 CLI = shutil.which('skel-extract', path=str(Path(sys.executable).parent)) or 'skel-extract'
 
 
-def run_cli(*args, timeout=900):
-    return subprocess.run([CLI, *map(str, args)], capture_output=True, text=True, timeout=timeout)
+def run_cli(*args, timeout=900, env=None):
+    return subprocess.run([CLI, *map(str, args)], capture_output=True, text=True, timeout=timeout, env=env)
 
 
 def run_cli_private_domain(offset, *args, timeout=900):
     """run_cli for commands that start ROS nodes (replay), on a ROS domain of their own
     (`offset` keeps two such tests of one process apart) so parallel runs never mix."""
-    previous = os.environ.get('ROS_DOMAIN_ID')
-    os.environ['ROS_DOMAIN_ID'] = str(private_domain(offset))
-    try:
-        return run_cli(*args, timeout=timeout)
-    finally:
-        if previous is None:
-            os.environ.pop('ROS_DOMAIN_ID')
-        else:
-            os.environ['ROS_DOMAIN_ID'] = previous
+    return run_cli(*args, timeout=timeout, env=private_environment(offset))
 
 
 @pytest.fixture

@@ -37,3 +37,10 @@ def private_domain(offset: int = 0) -> int:
         return domain
     raise RuntimeError(f'every test ROS domain {FIRST_DOMAIN}-{FIRST_DOMAIN + DOMAINS - 1} is held by '
                        f'another process')
+
+
+def private_environment(offset: int = 0, **extra: str) -> dict:
+    """os.environ for a child process that starts ROS nodes: on this process's domain for
+    `offset`, discovery kept to this machine, plus `extra` (name=value)."""
+    return dict(os.environ, ROS_DOMAIN_ID=str(private_domain(offset)), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
+                **extra)

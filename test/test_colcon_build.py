@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from ros_domains import private_domain
+from ros_domains import private_environment
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 COLCON = shutil.which('colcon', path=str(Path(sys.executable).parent))
@@ -51,10 +51,9 @@ def test_executables_land_in_lib_and_start(colcon_install):
 def test_installed_nodes_come_up_and_shut_down_cleanly(colcon_install, name, tmp_path):
     executable = colcon_install / 'lib' / 'skel_extract_ros' / name
     assert executable.is_file() and os.access(executable, os.X_OK)
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join(str(p) for p in
-                                                      colcon_install.glob('lib/python3*/site-packages')),
-               ROS_DOMAIN_ID=str(private_domain()), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
-               PYTHONUNBUFFERED='1')
+    env = private_environment(PYTHONPATH=os.pathsep.join(str(p) for p in
+                                                         colcon_install.glob('lib/python3*/site-packages')),
+                              PYTHONUNBUFFERED='1')
     log = tmp_path / 'node.log'
     with open(log, 'w') as stream:
         process = subprocess.Popen([str(executable)], stdout=stream, stderr=subprocess.STDOUT, env=env)

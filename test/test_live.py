@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from skel_extract_ros.core.joints import JointEstimation
-from skel_extract_ros.core.live import ArticulatedTracker, CameraTracker, LiveJointTracker
+from skel_extract_ros.core.live import FIT_OBSERVED, FIT_POINTS, ArticulatedTracker, CameraTracker, LiveJointTracker
 from skel_extract_ros.core.skeleton_model import SkeletonModel
 from skel_extract_ros.core.structure import StructureParams, extract_structure
 from two_bone import two_bone_sequence
@@ -266,6 +266,25 @@ def test_camera_tracker_chained_follows_a_limb_the_registered_pose_cannot_reach(
     chained = _surface_errors(camera, registered, observed)
     assert chained.mean() < 0.5 * alone.mean(), (chained.mean(), alone.mean())
     assert camera.counts['chained'] > 3 * camera.counts['fitted'], camera.counts
+
+
+def test_camera_tracker_for_model_gives_each_of_two_starts_half_of_one_fits_points(learned):
+    """The node's construction: one fit on FIT_POINTS model points and FIT_OBSERVED
+    observations; with the chain two fits, each on half of both (the model here has more
+    than FIT_POINTS points, so the halves are real subsets)."""
+    model, registered, _, _ = learned
+    assert len(model.rest_points) > FIT_POINTS
+    one = CameraTracker.for_model(model, None, LiveJointTracker(model), iterations=2)
+    two = CameraTracker.for_model(model, None, LiveJointTracker(model), iterations=2, chain=True)
+    assert one.chain is None and one.tracker.max_observed == FIT_OBSERVED
+    assert len(one.tracker._subset) <= FIT_POINTS < 2 * len(one.tracker._subset)
+    for tracker in (two.tracker, two.chain):
+        assert tracker.iterations == 2 and tracker.max_observed == FIT_OBSERVED // 2
+        assert len(tracker._subset) <= FIT_POINTS // 2 < 2 * len(tracker._subset)
+    # both halves fit: the chain follows the frames as the full-size trackers do
+    observed = _observations(registered)
+    errors = _surface_errors(two, registered, observed)
+    assert errors.mean() < 0.01, errors.mean()
 
 
 def test_camera_tracker_serves_the_registered_start_when_the_chain_has_drifted(learned):

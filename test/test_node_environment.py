@@ -9,7 +9,7 @@ import xml.etree.ElementTree as ElementTree
 
 import pytest
 
-from ros_domains import private_domain
+from ros_domains import private_environment
 
 PROBE = '''
 import os, sys
@@ -113,8 +113,7 @@ class _AccumulatorProcess:
 
     def __init__(self, tmp_path):
         self.log_path = tmp_path / 'accumulator.log'
-        environment = dict(os.environ, ROS_DOMAIN_ID=str(private_domain(91)),
-                           ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', PYTHONUNBUFFERED='1')
+        environment = private_environment(91, PYTHONUNBUFFERED='1')
         with open(self.log_path, 'w') as log:
             self.process = subprocess.Popen([sys.executable, '-m', 'skel_extract_ros.nodes.accumulator_node'],
                                             stdout=log, stderr=subprocess.STDOUT, env=environment)
@@ -289,8 +288,7 @@ def test_a_node_process_ends_without_the_interpreters_finalisation(ending, code)
     """After Ctrl-C (or a parameter error) the node process ends in run_node with its exit
     code: what it printed is flushed, and nothing is left to the interpreter's finalisation
     (the garbage collector finalising rclpy's entities once hung a joint node in CI)."""
-    environment = dict(os.environ, ROS_DOMAIN_ID=str(private_domain(17)),
-                       ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
+    environment = private_environment(17)
     done = subprocess.run([sys.executable, '-c', EXIT_PROBE, ending], capture_output=True, text=True,
                           env=environment, timeout=60)
     assert done.returncode == code, done.stderr

@@ -598,7 +598,9 @@ def test_joint_estimation_node_live_camera_frames_do_not_wait_for_registration(r
     # (4.2 mm, 45.6 mm mean) and fails both bounds, as a fit that did not move would; on the
     # same bend without walking it was better than holding, 12.8 against 13.8 mm, where the
     # reach is worse, 21 mm (bench/README.md, "Reach").
-    assert live_error[0] < 0.7 * held_error[0], (live_error, held_error)
+    # With live_chain the first frame's fit (from the registered pose; no frame before yet) is
+    # on half the points: 4.6 mm measured, not within the 0.7 bound of the fit on all of them.
+    assert live_chain or live_error[0] < 0.7 * held_error[0], (live_error, held_error)
     assert live_error.mean() < 0.85 * held_error.mean(), (live_error, held_error)
     # every frame fitted: the first from the registered pose, the others from it or from the
     # frame before, whichever its points support better (live_chain)
@@ -607,6 +609,10 @@ def test_joint_estimation_node_live_camera_frames_do_not_wait_for_registration(r
     # the second fit (from the frame before: none for the first) served or left out for time,
     # by load (core.live's tests check both on their own)
     assert (fits['chained'] + fits['chain_skipped'] > 0) == live_chain, fits
+    if live_chain and fits['chain_skipped'] == 0:
+        # chained from frame to frame the walk is followed: 3.1 mm on average (measured),
+        # where the registered pose is 46 mm behind
+        assert live_error.mean() < 0.2 * held_error.mean(), (live_error, held_error)
     # every fitted camera frame's posed model (the registration's start), in the registered
     # points' order, closer to the frame's true points than the registered frame's are
     ros.wait(lambda: len(posed) == 11, what='the posed model of every fitted frame')

@@ -14,7 +14,7 @@ from skel_extract_ros.codecs.bag import _raw_messages, topic_counts
 from skel_extract_ros.config import DEFAULT_PARAMS_FILE
 
 from conftest import CLI, run_cli
-from ros_domains import private_domain
+from ros_domains import private_environment
 
 
 def _descriptions(mcap):
@@ -76,8 +76,7 @@ def recorded(sample_bag, tmp_path_factory):
     # not change on growth)
     params['registration_node']['ros__parameters']['rest_pose']['choice_frames'] = 1
     (tmp / 'grow.yaml').write_text(yaml.safe_dump(params))
-    env = dict(os.environ, ROS_DOMAIN_ID=str(private_domain(60)),
-               ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', PYTHONUNBUFFERED='1')
+    env = private_environment(60, PYTHONUNBUFFERED='1')
     recorder = subprocess.Popen([CLI, 'record', '--out', tmp / 'demo'], stdout=subprocess.PIPE,
                                 stderr=subprocess.STDOUT, text=True, env=env)
     try:

@@ -90,11 +90,11 @@ class JointNodeParams:
     live_sweeps: int = parameter(2, "the fit of each registered frame (live_frames registered, and the camera "
                                  "frames' start): bone-by-bone passes after the rigid initialisation", 0, 100,
                                  live=True)
-    live_chain: bool = parameter(False, 'with live_frames camera: each camera frame is also fitted from the pose '
+    live_chain: bool = parameter(True, 'with live_frames camera: each camera frame is also fitted from the pose '
                                  'served for the frame before, when that second fit still ends before the next '
                                  'frame comes, and the fit whose joints its points support better (the higher mean '
-                                 'confidence) is served (fast limbs; twice the fit time). false: from the newest '
-                                 'registered pose only', live=True)
+                                 'confidence) is served (fast limbs); each of the two fits on half the points one '
+                                 'fit uses. false: one fit, from the newest registered pose', live=True)
     provisional_skeleton: bool = parameter(True, "with live_frames camera: track Step 2's skeleton (each point on "
                                            'its bone) as soon as a structure arrives, described with provisional '
                                            "true, while Alg. 2 runs; Alg. 2's model then replaces it under the same "

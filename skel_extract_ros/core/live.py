@@ -73,6 +73,10 @@ LIVE_ALPHA_START = 1e-4
 WHOLE_BODY_ROUNDS = 3
 # observed points a camera frame's confidence is measured on at most (a strided subset)
 CONFIDENCE_SAMPLES = 1000
+# the model points and observations one camera-frame fit uses at most (strided subsets):
+# its cost is linear in both, the joints need neither all of them
+FIT_POINTS = 600
+FIT_OBSERVED = 1000
 
 
 class _BoneBlocks:
@@ -233,7 +237,7 @@ class ArticulatedTracker(_BoneBlocks):
     """
 
     def __init__(self, model: SkeletonModel, params: JointParams | None = None, sweeps: int = 1,
-                 iterations: int = 5, max_points: int = 600, max_observed: int = 1000,
+                 iterations: int = 5, max_points: int = FIT_POINTS, max_observed: int = FIT_OBSERVED,
                  lost_tau_factor: float = 9.0, reach: bool = True):
         super().__init__(model, params, sweeps, max_points)
         self.reach = bool(reach)
@@ -383,6 +387,20 @@ class CameraTracker:
         self.counts = {'fitted': 0, 'chained': 0, 'lost': 0, 'registered': 0}
         self.chain_skipped = 0                       # frames whose second fit the deadline left out
         self._chain_seconds = 0.0                    # the last second fit's time, with its confidence
+
+    @classmethod
+    def for_model(cls, model: SkeletonModel, params: JointParams | None, fit: LiveJointTracker,
+                  iterations: int, chain: bool = False, sweeps: int = 1, reach: bool = True) -> 'CameraTracker':
+        """The joint node's camera tracker of `model` (fit: its LiveJointTracker): one
+        ArticulatedTracker (iterations, sweeps, reach as there) on FIT_POINTS model points and
+        FIT_OBSERVED observations, or with `chain` two, each on half of them, so that both
+        starts cost about what one did (a fit's cost is linear in both; bench/README.md, the
+        live fit's table)."""
+        share = 2 if chain else 1
+        trackers = [ArticulatedTracker(model, params, sweeps=sweeps, iterations=iterations, reach=reach,
+                                       max_points=FIT_POINTS // share, max_observed=FIT_OBSERVED // share)
+                    for _ in range(share)]
+        return cls(trackers[0], fit, trackers[1] if chain else None)
 
     def registered(self, stamp: int, registered_points: np.ndarray) -> None:
         """Take the registered frame at `stamp` (registered_points (M, 3) m, the model's

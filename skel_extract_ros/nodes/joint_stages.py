@@ -19,7 +19,7 @@ from ..codecs.messages import stamp_ns
 from ..core.articulated import blend, dense_weights
 from ..core.confidence import fit_noise
 from ..core.joints import JointEstimation
-from ..core.live import ArticulatedTracker, CameraTracker, LiveJointTracker
+from ..core.live import CameraTracker, LiveJointTracker
 from ..core.point_sets import finite_rows
 from ..core.skeleton_model import SkeletonModel
 from ..core.structure import SkeletalStructure
@@ -255,8 +255,7 @@ class JointStages:
                                    'is not used')
             return
         tracker = LiveJointTracker(model, self.params, self.live_sweeps)
-        chain = ArticulatedTracker(model, self.params, iterations=self.live_iterations) if self.live_chain else None
-        camera = CameraTracker(ArticulatedTracker(model, self.params, iterations=self.live_iterations), tracker, chain)
+        camera = CameraTracker.for_model(model, self.params, tracker, self.live_iterations, chain=self.live_chain)
         window = [(stamp, header, *self._registered_outputs(model, tracker, registered, rotations, translations,
                                                             observed))
                   for stamp, (header, registered, observed), rotations, translations
