@@ -271,20 +271,22 @@ def test_camera_tracker_chained_follows_a_limb_the_registered_pose_cannot_reach(
 def test_camera_tracker_for_model_gives_each_of_two_starts_half_of_one_fits_points(learned):
     """The node's construction: one fit on FIT_POINTS model points and FIT_OBSERVED
     observations; with the chain two fits, each on half of both (the model here has more
-    than FIT_POINTS points, so the halves are real subsets)."""
+    than FIT_POINTS points, so the halves are real subsets). On half the points, 3 EM
+    iterations as the node, the chain follows the turning limb of the test above: the posed
+    points 4.0 mm from the true surface on average (measured; both fits on all the points
+    2.4 mm, the registered start alone 75 mm); bound 10 mm."""
     model, registered, _, _ = learned
     assert len(model.rest_points) > FIT_POINTS
-    one = CameraTracker.for_model(model, None, LiveJointTracker(model), iterations=2)
-    two = CameraTracker.for_model(model, None, LiveJointTracker(model), iterations=2, chain=True)
+    one = CameraTracker.for_model(model, None, LiveJointTracker(model), iterations=3)
+    two = CameraTracker.for_model(model, None, LiveJointTracker(model), iterations=3, chain=True)
     assert one.chain is None and one.tracker.max_observed == FIT_OBSERVED
     assert len(one.tracker._subset) <= FIT_POINTS < 2 * len(one.tracker._subset)
     for tracker in (two.tracker, two.chain):
-        assert tracker.iterations == 2 and tracker.max_observed == FIT_OBSERVED // 2
+        assert tracker.iterations == 3 and tracker.max_observed == FIT_OBSERVED // 2
         assert len(tracker._subset) <= FIT_POINTS // 2 < 2 * len(tracker._subset)
-    # both halves fit: the chain follows the frames as the full-size trackers do
-    observed = _observations(registered)
-    errors = _surface_errors(two, registered, observed)
+    errors = _surface_errors(two, registered, _observations(registered))
     assert errors.mean() < 0.01, errors.mean()
+    assert two.counts['chained'] > 3 * two.counts['fitted'], two.counts
 
 
 def test_camera_tracker_serves_the_registered_start_when_the_chain_has_drifted(learned):

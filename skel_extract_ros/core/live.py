@@ -74,7 +74,7 @@ WHOLE_BODY_ROUNDS = 3
 # observed points a camera frame's confidence is measured on at most (a strided subset)
 CONFIDENCE_SAMPLES = 1000
 # the model points and observations one camera-frame fit uses at most (strided subsets):
-# its cost is linear in both, the joints need neither all of them
+# its E-steps and data sums grow with both, the joints need neither all of them
 FIT_POINTS = 600
 FIT_OBSERVED = 1000
 
@@ -393,9 +393,10 @@ class CameraTracker:
                   iterations: int, chain: bool = False, sweeps: int = 1, reach: bool = True) -> 'CameraTracker':
         """The joint node's camera tracker of `model` (fit: its LiveJointTracker): one
         ArticulatedTracker (iterations, sweeps, reach as there) on FIT_POINTS model points and
-        FIT_OBSERVED observations, or with `chain` two, each on half of them, so that both
-        starts cost about what one did (a fit's cost is linear in both; bench/README.md, the
-        live fit's table)."""
+        FIT_OBSERVED observations, or with `chain` two, each on half of them: the two cost
+        about 1.5 times one (the rest of a fit is numpy's per-call overhead in the bone
+        updates) and a fit on half the points follows real motion as well as one on all
+        (bench/README.md, the live fit's table)."""
         share = 2 if chain else 1
         trackers = [ArticulatedTracker(model, params, sweeps=sweeps, iterations=iterations, reach=reach,
                                        max_points=FIT_POINTS // share, max_observed=FIT_OBSERVED // share)
