@@ -10,8 +10,11 @@ same frames, but `evaluate` matches stamps to the bag's ground truth, which cove
 first pass of a loop only). Printed: the evaluate scores over every frame with
 joints and over the passes from K on (after the skeleton was learned), the distance of
 every live joint to its nearest true joint (median, p95): meaningful where the scores
-match no joint, and the registration's error (registered.npz against the repeated ground
-truth's material points, evaluate_registration), over all and from pass K on.
+match no joint, the registration's error (registered.npz against the repeated ground
+truth's material points, evaluate_registration), over all and from pass K on, and the joint
+node's camera frames by the start their joints came from (its last /diagnostics: from the
+registered pose, from the frame before with `live_chain`, and the second fits left out for
+time).
 """
 from __future__ import annotations
 
@@ -22,6 +25,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray
 from mcap.reader import make_reader
 from rclpy.serialization import deserialize_message
@@ -54,6 +58,24 @@ def live_joints(recording: Path) -> PredictedSkeleton:
                              np.array([positions[i] for i in keep])[order])
 
 
+# the joint node's diagnostics keys that count its camera frames' fits (README.md, Diagnostics)
+LIVE_FIT_KEYS = ('live_fitted', 'live_chained', 'live_chain_skipped')
+
+
+def live_fits(recording: Path) -> dict | None:
+    """The joint node's last /diagnostics counts of its camera frames' fits ({key: int} for
+    LIVE_FIT_KEYS; cumulative over the recording), or None without such a status."""
+    counts = None
+    with open(recording, 'rb') as stream:
+        for _schema, channel, message in make_reader(stream).iter_messages(topics=['/diagnostics'],
+                                                                         log_time_order=True):
+            for status in deserialize_message(message.data, DiagnosticArray).status:
+                values = {value.key: value.value for value in status.values}
+                if all(key in values for key in LIVE_FIT_KEYS):
+                    counts = {key: int(values[key]) for key in LIVE_FIT_KEYS}
+    return counts
+
+
 def looped(gt: GroundTruth, until_s: float, bounce: bool = False) -> tuple:
     """(the ground truth repeated until `until_s`, one pass in s), stamps moved on by a pass
     each time as `replay --loop` moves them (with `bounce`, every odd pass backwards, its
@@ -79,7 +101,7 @@ def score(bag: Path, out: Path, from_pass: int = 3, bounce: bool = False) -> dic
     truth, repeated for each pass: {'all' / 'later': JointReport or None (every frame with
     joints / from pass `from_pass` on), 'nearest_cm': (median, p95) of each live joint's
     distance to its nearest true joint, 'registration': (frames, frames from the pass,
-    mean cm, mean cm from the pass)}."""
+    mean cm, mean cm from the pass), 'live_fits': live_fits(...) or None}."""
     pred = live_joints(out / 'output.mcap')
     gt, pass_s = looped(GroundTruth.load(bag / 'gt.npz'), float(pred.stamps.max()), bounce)
     later = pred.stamps >= gt.stamps[0] + from_pass * pass_s
@@ -101,6 +123,7 @@ def score(bag: Path, out: Path, from_pass: int = 3, bounce: bool = False) -> dic
     per_frame = np.asarray(scores['per_frame_error_m'])
     result['registration'] = (len(per_frame), int(tracking.sum()), 100 * scores['mean_error_m'],
                               100 * per_frame[-tracking.sum():].mean() if tracking.any() else float('nan'))
+    result['live_fits'] = live_fits(out / 'output.mcap')
     return result
 
 
@@ -125,6 +148,10 @@ def main(argv=None) -> int:
     frames, later_frames, mean, later_mean = result['registration']
     print(f'registration: {frames} frames ({later_frames} from pass {args.from_pass}), mean '
           f'{mean:.1f} cm, from pass {args.from_pass} mean {later_mean:.1f} cm')
+    fits = result['live_fits']
+    if fits is not None:
+        print(f"camera frames' joints: {fits['live_fitted']} from the registered pose, {fits['live_chained']} from "
+              f"the frame before; second fits left out for time: {fits['live_chain_skipped']}")
     return 0
 
 

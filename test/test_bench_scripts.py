@@ -161,3 +161,40 @@ def test_bench_real_motion_relearns_steps_2_and_3_on_a_kept_registration(tmp_pat
     every_cut = rows('--relearn', '--params', str(params))
     assert every_cut['n_predicted'] > run['n_predicted']
     assert every_cut['reg_mean_m'] == run['reg_mean_m'] and kept.stat().st_mtime_ns == made
+
+
+def test_score_realtime_counts_the_joint_nodes_camera_fits_from_its_last_diagnostics(tmp_path):
+    """The counts come from the last status that has them (the joint node's; the other
+    nodes' statuses are passed over); a recording without one gives None."""
+    sys.path.insert(0, str(REPO / 'bench'))
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from score_realtime import live_fits
+    from skel_extract_ros.codecs.bag import typestore
+    store = typestore()
+    Array, Status, Pair = (store.types[f'diagnostic_msgs/msg/{name}'] for name in
+                           ('DiagnosticArray', 'DiagnosticStatus', 'KeyValue'))
+    Header, Time = store.types['std_msgs/msg/Header'], store.types['builtin_interfaces/msg/Time']
+
+    def status(name, **values):
+        return Status(level=0, name=name, message='tracking', hardware_id='',
+                      values=[Pair(key=key, value=str(value)) for key, value in values.items()])
+
+    def recording(path, statuses):
+        writer = Writer(path, version=9, storage_plugin=StoragePlugin.MCAP)
+        with writer:
+            connection = writer.add_connection('/diagnostics', 'diagnostic_msgs/msg/DiagnosticArray',
+                                               typestore=store)
+            for second, entry in enumerate(statuses, start=1):
+                message = Array(header=Header(stamp=Time(sec=second, nanosec=0), frame_id=''), status=[entry])
+                writer.write(connection, second * 10**9,
+                             store.serialize_cdr(message, 'diagnostic_msgs/msg/DiagnosticArray'))
+        return next(path.glob('*.mcap'))
+
+    joint = '/joint_estimation_node'
+    statuses = [status(joint, live_fitted=5, live_chained=0, live_chain_skipped=1),
+                status('/accumulator_node', rate_in_hz=30.0),
+                status(joint, live_fitted=12, live_chained=30, live_chain_skipped=7),
+                status('/registration_node', rate_in_hz=1.0)]
+    assert live_fits(recording(tmp_path / 'both', statuses)) == {'live_fitted': 12, 'live_chained': 30,
+                                                                 'live_chain_skipped': 7}
+    assert live_fits(recording(tmp_path / 'none', statuses[1:2])) is None
