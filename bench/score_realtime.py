@@ -38,9 +38,17 @@ from skel_extract_ros.app.evaluation import (GroundTruth, PredictedSkeleton, eva
 from skel_extract_ros.app.replay import looped_stamp  # noqa: E402
 
 
-def live_joints(recording: Path) -> PredictedSkeleton:
-    """Every skeleton/joints message with the description's joint count, in stamp order."""
-    stamps, positions, description = [], [], None
+# the joint node's diagnostics keys that count its camera frames' fits (README.md, Diagnostics)
+LIVE_FIT_KEYS = ('live_fitted', 'live_chained', 'live_chain_skipped')
+
+
+def read_recording(recording: Path) -> tuple:
+    """One pass over a replay's output.mcap (hundreds of MB: read once): (the live joints,
+    a PredictedSkeleton of every skeleton/joints message with the newest description's
+    joint count, in stamp order; the joint node's last /diagnostics counts of its camera
+    frames' fits, {key: int} for LIVE_FIT_KEYS, cumulative over the recording, or None
+    without such a status)."""
+    stamps, positions, description, fits = [], [], None, None
     with open(recording, 'rb') as stream:
         for _schema, channel, message in make_reader(stream).iter_messages(log_time_order=True):
             if channel.topic.endswith('skeleton/description'):
@@ -49,31 +57,18 @@ def live_joints(recording: Path) -> PredictedSkeleton:
                 msg = deserialize_message(message.data, PoseArray)
                 stamps.append(msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9)
                 positions.append([[p.position.x, p.position.y, p.position.z] for p in msg.poses])
+            elif channel.topic == '/diagnostics':
+                for status in deserialize_message(message.data, DiagnosticArray).status:
+                    values = {value.key: value.value for value in status.values}
+                    if all(key in values for key in LIVE_FIT_KEYS):
+                        fits = {key: int(values[key]) for key in LIVE_FIT_KEYS}
     if description is None:
         raise SystemExit(f'{recording}: no skeleton/description recorded')
     n_joints = len(description['joint_names'])
     keep = [i for i, p in enumerate(positions) if len(p) == n_joints]
     order = np.argsort(np.array(stamps)[keep], kind='stable')
-    return PredictedSkeleton(description['joint_names'], description['parents'], np.array(stamps)[keep][order],
-                             np.array([positions[i] for i in keep])[order])
-
-
-# the joint node's diagnostics keys that count its camera frames' fits (README.md, Diagnostics)
-LIVE_FIT_KEYS = ('live_fitted', 'live_chained', 'live_chain_skipped')
-
-
-def live_fits(recording: Path) -> dict | None:
-    """The joint node's last /diagnostics counts of its camera frames' fits ({key: int} for
-    LIVE_FIT_KEYS; cumulative over the recording), or None without such a status."""
-    counts = None
-    with open(recording, 'rb') as stream:
-        for _schema, channel, message in make_reader(stream).iter_messages(topics=['/diagnostics'],
-                                                                         log_time_order=True):
-            for status in deserialize_message(message.data, DiagnosticArray).status:
-                values = {value.key: value.value for value in status.values}
-                if all(key in values for key in LIVE_FIT_KEYS):
-                    counts = {key: int(values[key]) for key in LIVE_FIT_KEYS}
-    return counts
+    return (PredictedSkeleton(description['joint_names'], description['parents'], np.array(stamps)[keep][order],
+                              np.array([positions[i] for i in keep])[order]), fits)
 
 
 def looped(gt: GroundTruth, until_s: float, bounce: bool = False) -> tuple:
@@ -101,8 +96,8 @@ def score(bag: Path, out: Path, from_pass: int = 3, bounce: bool = False) -> dic
     truth, repeated for each pass: {'all' / 'later': JointReport or None (every frame with
     joints / from pass `from_pass` on), 'nearest_cm': (median, p95) of each live joint's
     distance to its nearest true joint, 'registration': (frames, frames from the pass,
-    mean cm, mean cm from the pass), 'live_fits': live_fits(...) or None}."""
-    pred = live_joints(out / 'output.mcap')
+    mean cm, mean cm from the pass), 'live_fits': read_recording's counts or None}."""
+    pred, fits = read_recording(out / 'output.mcap')
     gt, pass_s = looped(GroundTruth.load(bag / 'gt.npz'), float(pred.stamps.max()), bounce)
     later = pred.stamps >= gt.stamps[0] + from_pass * pass_s
     result = {}
@@ -123,7 +118,7 @@ def score(bag: Path, out: Path, from_pass: int = 3, bounce: bool = False) -> dic
     per_frame = np.asarray(scores['per_frame_error_m'])
     result['registration'] = (len(per_frame), int(tracking.sum()), 100 * scores['mean_error_m'],
                               100 * per_frame[-tracking.sum():].mean() if tracking.any() else float('nan'))
-    result['live_fits'] = live_fits(out / 'output.mcap')
+    result['live_fits'] = fits
     return result
 
 

@@ -10,6 +10,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 from conftest import SHARED_DATA
 
@@ -164,29 +165,46 @@ def test_bench_real_motion_relearns_steps_2_and_3_on_a_kept_registration(tmp_pat
 
 
 def test_score_realtime_counts_the_joint_nodes_camera_fits_from_its_last_diagnostics(tmp_path):
-    """The counts come from the last status that has them (the joint node's; the other
-    nodes' statuses are passed over); a recording without one gives None."""
+    """In the one pass over the recording that reads the live joints, the counts come from the
+    last status that has them (the joint node's; the other nodes' statuses are passed over);
+    a recording without one gives None."""
     sys.path.insert(0, str(REPO / 'bench'))
     from rosbags.rosbag2 import StoragePlugin, Writer
-    from score_realtime import live_fits
+    from score_realtime import read_recording
     from skel_extract_ros.codecs.bag import typestore
     store = typestore()
     Array, Status, Pair = (store.types[f'diagnostic_msgs/msg/{name}'] for name in
                            ('DiagnosticArray', 'DiagnosticStatus', 'KeyValue'))
     Header, Time = store.types['std_msgs/msg/Header'], store.types['builtin_interfaces/msg/Time']
+    Text, Poses, Pose = (store.types[name] for name in ('std_msgs/msg/String', 'geometry_msgs/msg/PoseArray',
+                                                        'geometry_msgs/msg/Pose'))
+    Point, Quaternion = store.types['geometry_msgs/msg/Point'], store.types['geometry_msgs/msg/Quaternion']
 
     def status(name, **values):
         return Status(level=0, name=name, message='tracking', hardware_id='',
                       values=[Pair(key=key, value=str(value)) for key, value in values.items()])
 
+    def header(second):
+        return Header(stamp=Time(sec=second, nanosec=0), frame_id='camera')
+
     def recording(path, statuses):
         writer = Writer(path, version=9, storage_plugin=StoragePlugin.MCAP)
         with writer:
-            connection = writer.add_connection('/diagnostics', 'diagnostic_msgs/msg/DiagnosticArray',
-                                               typestore=store)
+            topics = {topic: writer.add_connection(topic, kind, typestore=store) for topic, kind in
+                      (('/skeleton/description', 'std_msgs/msg/String'),
+                       ('/skeleton/joints', 'geometry_msgs/msg/PoseArray'),
+                       ('/diagnostics', 'diagnostic_msgs/msg/DiagnosticArray'))}
+            description = Text(data=json.dumps({'joint_names': ['joint_0', 'joint_1'], 'parents': [-1, 0]}))
+            writer.write(topics['/skeleton/description'], 10**9,
+                         store.serialize_cdr(description, 'std_msgs/msg/String'))
             for second, entry in enumerate(statuses, start=1):
-                message = Array(header=Header(stamp=Time(sec=second, nanosec=0), frame_id=''), status=[entry])
-                writer.write(connection, second * 10**9,
+                poses = Poses(header=header(second), poses=[
+                    Pose(position=Point(x=0.1 * second, y=0.0, z=float(joint)),
+                         orientation=Quaternion(x=0.0, y=0.0, z=0.0, w=1.0)) for joint in range(2)])
+                writer.write(topics['/skeleton/joints'], second * 10**9,
+                             store.serialize_cdr(poses, 'geometry_msgs/msg/PoseArray'))
+                message = Array(header=header(second), status=[entry])
+                writer.write(topics['/diagnostics'], second * 10**9,
                              store.serialize_cdr(message, 'diagnostic_msgs/msg/DiagnosticArray'))
         return next(path.glob('*.mcap'))
 
@@ -195,6 +213,8 @@ def test_score_realtime_counts_the_joint_nodes_camera_fits_from_its_last_diagnos
                 status('/accumulator_node', rate_in_hz=30.0),
                 status(joint, live_fitted=12, live_chained=30, live_chain_skipped=7),
                 status('/registration_node', rate_in_hz=1.0)]
-    assert live_fits(recording(tmp_path / 'both', statuses)) == {'live_fitted': 12, 'live_chained': 30,
-                                                                 'live_chain_skipped': 7}
-    assert live_fits(recording(tmp_path / 'none', statuses[1:2])) is None
+    skeleton, fits = read_recording(recording(tmp_path / 'both', statuses))
+    assert fits == {'live_fitted': 12, 'live_chained': 30, 'live_chain_skipped': 7}
+    np.testing.assert_allclose(skeleton.stamps, [1.0, 2.0, 3.0, 4.0])
+    np.testing.assert_allclose(skeleton.positions[:, 1], [[0.1 * s, 0.0, 1.0] for s in range(1, 5)])
+    assert read_recording(recording(tmp_path / 'none', statuses[1:2]))[1] is None
