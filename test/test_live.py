@@ -346,7 +346,7 @@ def test_camera_tracker_gives_the_registered_pose_when_the_fit_diverges(learned)
     positions, outcome = camera.track(12, observed[12])
     assert outcome == 'registered'
     np.testing.assert_allclose(positions, camera.fit.track(registered[12]), atol=1e-12)
-    assert camera.counts == {'fitted': 9, 'chained': 0, 'lost': 1, 'registered': 1}
+    assert camera.counts == {'fitted': 9, 'chained': 0, 'lost': 1, 'registered': 1, 'reposed': 0}
     # the posed model (where the registration may start) only after a fitted frame
     assert camera.posed_points() is None
     camera.track(13, observed[13])

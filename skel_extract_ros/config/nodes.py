@@ -95,6 +95,11 @@ class JointNodeParams:
                                  'frame comes, and the fit whose joints its points support better (the higher mean '
                                  'confidence) is served (fast limbs); each of the two fits on half the points one '
                                  'fit uses. false: one fit, from the newest registered pose', live=True)
+    live_limb_poses: bool = parameter(True, 'with live_frames camera: the fit from the registered pose starts '
+                                      "each limb the frame's points show elsewhere in the one of its poses on the "
+                                      'frames the skeleton was learned on that explains them clearly better (a '
+                                      "hand that swung beyond the fit's reach). false: the registered pose as it "
+                                      'is', live=True)
     provisional_skeleton: bool = parameter(True, "with live_frames camera: track Step 2's skeleton (each point on "
                                            'its bone) as soon as a structure arrives, described with provisional '
                                            "true, while Alg. 2 runs; Alg. 2's model then replaces it under the same "
@@ -145,4 +150,4 @@ NODES = {
 LIVE_FROM = {'accumulator_node': 'the next registered frame',
              'joint_estimation_node': 'the next frame (joint_diameter, live_iterations, live_sweeps, buffer_size) '
                                       "or the next skeleton/structure (the method's parameters, "
-                                      'provisional_skeleton, live_chain)'}
+                                      'provisional_skeleton, live_chain, live_limb_poses)'}

@@ -53,6 +53,7 @@ from .articulated import BoneBlocks
 from .confidence import half_residual, joint_confidence, outside_silhouette
 from .gmm import CandidateCache
 from .joints import JointParams
+from .limb_poses import LimbPoses
 from .point_sets import finite_rows, median_spacing
 from .registration.visibility import ObservedView
 from .rigid import fit_rigid_segments, weighted_rigid_fit
@@ -367,41 +368,51 @@ class CameraTracker:
     than the recent frames) is no candidate; with none, the frame gets the registered
     pose's joints. Given a deadline, the second fit is made only when the time the last
     one and its confidence took still fits before it (a machine that cannot fit twice a
-    frame answers every frame from the registered pose rather than fewer frames).
+    frame answers every frame from the registered pose rather than fewer frames). With
+    `limb_poses`, the fit from the registered pose starts with each limb the frame's points
+    show elsewhere put in the key frames' pose that explains them best
+    (core.limb_poses.LimbPoses): a hand that swung beyond the fit's reach since the
+    registered frame is started where this subject's hand has been.
 
     tracker: the ArticulatedTracker started from the registered pose; fit: a
     LiveJointTracker of the same model (registered points -> bone transforms); chain: a
-    second ArticulatedTracker of the model, or None (one fit a frame). Stamps are integers
-    (ns).
+    second ArticulatedTracker of the model, or None (one fit a frame); limb_poses: the
+    model's LimbPoses, or None (the registered pose as it is). Stamps are integers (ns).
+    `counts['reposed']`: the frames whose registered start had a limb re-posed.
     """
 
-    def __init__(self, tracker: ArticulatedTracker, fit: LiveJointTracker, chain: ArticulatedTracker | None = None):
+    def __init__(self, tracker: ArticulatedTracker, fit: LiveJointTracker, chain: ArticulatedTracker | None = None,
+                 limb_poses: LimbPoses | None = None):
         for other in (fit, chain):
             if other is not None and other.n_bones != tracker.n_bones:
                 raise ValueError(f'the trackers have {other.n_bones} and {tracker.n_bones} bones')
-        self.tracker, self.fit, self.chain = tracker, fit, chain
+        self.tracker, self.fit, self.chain, self.limb_poses = tracker, fit, chain, limb_poses
         self._registered = None                      # (stamp, rotations, translations), newest
         self._fitted = None                          # the last frame's fitted transforms, if fitted
         self.pose = None                             # the last frame's served transforms (any outcome)
         self.confidence = None                       # (J,) the served pose's, against the last frame's points
-        self.counts = {'fitted': 0, 'chained': 0, 'lost': 0, 'registered': 0}
+        self.counts = {'fitted': 0, 'chained': 0, 'lost': 0, 'registered': 0, 'reposed': 0}
         self.chain_skipped = 0                       # frames whose second fit the deadline left out
         self._chain_seconds = 0.0                    # the last second fit's time, with its confidence
 
     @classmethod
     def for_model(cls, model: SkeletonModel, params: JointParams | None, fit: LiveJointTracker,
-                  iterations: int, chain: bool = False, sweeps: int = 1, reach: bool = True) -> 'CameraTracker':
+                  iterations: int, chain: bool = False, sweeps: int = 1, reach: bool = True,
+                  key_poses: tuple | None = None) -> 'CameraTracker':
         """The joint node's camera tracker of `model` (fit: its LiveJointTracker): one
         ArticulatedTracker (iterations, sweeps, reach as there) on FIT_POINTS model points and
         FIT_OBSERVED observations, or with `chain` two, each on half of them: the two cost
         about 1.5 times one (the rest of a fit is numpy's per-call overhead in the bone
         updates) and a fit on half the points follows real motion as well as one on all
-        (bench/README.md, the live fit's table)."""
+        (bench/README.md, the live fit's table). key_poses: (rotations (K, B, 3, 3),
+        translations (K, B, 3)) of the frames the model was learned on, for its LimbPoses
+        (None: the registered start as it is)."""
         share = 2 if chain else 1
         trackers = [ArticulatedTracker(model, params, sweeps=sweeps, iterations=iterations, reach=reach,
                                        max_points=FIT_POINTS // share, max_observed=FIT_OBSERVED // share)
                     for _ in range(share)]
-        return cls(trackers[0], fit, trackers[1] if chain else None)
+        limb_poses = None if key_poses is None else LimbPoses(model, *key_poses)
+        return cls(trackers[0], fit, trackers[1] if chain else None, limb_poses)
 
     def registered(self, stamp: int, registered_points: np.ndarray) -> None:
         """Take the registered frame at `stamp` (registered_points (M, 3) m, the model's
@@ -425,7 +436,11 @@ class CameraTracker:
         outcome = 'registered'
         confidence = None
         if registered_stamp != int(stamp):
-            self.tracker.seed(rotations, translations)
+            start = (rotations, translations)
+            if self.limb_poses is not None:
+                *start, reposed = self.limb_poses.repose(rotations, translations, observed)
+                self.counts['reposed'] += bool(reposed)
+            self.tracker.seed(*start)
             candidates = [('fitted', self.tracker)]
             if self.chain is not None and self.pose is not None:
                 candidates.append(('chained', self.chain))

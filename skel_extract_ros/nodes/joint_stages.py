@@ -43,6 +43,7 @@ class JointStages:
         self.log, self.logger, self.context_ok = log, logger, context_ok
         self.buffer_size, self.live_sweeps = settings.buffer_size, settings.live_sweeps
         self.provisional_skeleton, self.live_chain = settings.provisional_skeleton, settings.live_chain
+        self.live_limb_poses = settings.live_limb_poses
         self.live_frames, self.live_iterations = settings.live_frames, settings.live_iterations
         self._lock = threading.Lock()
         self.rest, self.rest_stamp = None, None
@@ -66,18 +67,18 @@ class JointStages:
         self.live_ms = collections.deque(maxlen=1000)      # per live frame fit
         self.joints_rate = RateMeter()
         self.live_fits = {'fitted': 0, 'chained': 0, 'lost': 0, 'registered': 0, 'too_few_points': 0,
-                          'chain_skipped': 0}
+                          'chain_skipped': 0, 'reposed': 0}
         self._camera_stamps = collections.deque(maxlen=CAMERA_PERIOD_FRAMES + 1)   # the newest frames' stamps, ns
         self.live = Worker(self._live_camera_frame, 'live', capacity=1, on_error=self._live_failed)
 
     def apply(self, params, settings) -> None:
-        """New parameters (`ros2 param set`): the method's, provisional_skeleton and
-        live_chain from the next structure (Alg. 2 and the trackers of the model it gives),
-        the rest from the next frame."""
+        """New parameters (`ros2 param set`): the method's, provisional_skeleton, live_chain
+        and live_limb_poses from the next structure (Alg. 2 and the trackers of the model it
+        gives), the rest from the next frame."""
         with self._lock:
             self.params = params
             self.buffer_size, self.provisional_skeleton = settings.buffer_size, settings.provisional_skeleton
-            self.live_chain = settings.live_chain
+            self.live_chain, self.live_limb_poses = settings.live_chain, settings.live_limb_poses
             self.live_sweeps, self.live_iterations = settings.live_sweeps, settings.live_iterations
             self.output.joint_diameter = float(settings.joint_diameter)
             if self.tracker is not None:       # the model tracked now, from its next frame
@@ -255,7 +256,9 @@ class JointStages:
                                    'is not used')
             return
         tracker = LiveJointTracker(model, self.params, self.live_sweeps)
-        camera = CameraTracker.for_model(model, self.params, tracker, self.live_iterations, chain=self.live_chain)
+        # the window's poses are the key frames the model was learned on: the limbs' poses
+        camera = CameraTracker.for_model(model, self.params, tracker, self.live_iterations, chain=self.live_chain,
+                                         key_poses=window_pose if self.live_limb_poses else None)
         window = [(stamp, header, *self._registered_outputs(model, tracker, registered, rotations, translations,
                                                             observed))
                   for stamp, (header, registered, observed), rotations, translations
@@ -353,10 +356,11 @@ class JointStages:
             return
         # done before the next frame comes: a second fit that does not fit in the camera's
         # period would cost frames (CameraTracker)
-        skipped = camera.chain_skipped
+        skipped, reposed = camera.chain_skipped, camera.counts['reposed']
         positions, outcome = camera.track(stamp, observed, None if period is None else arrived + period)
         self.live_fits[outcome] += 1
         self.live_fits['chain_skipped'] += camera.chain_skipped - skipped
+        self.live_fits['reposed'] += camera.counts['reposed'] - reposed
         self.live_ms.append(1000.0 * (time.perf_counter() - started))
         # the fit's own bone rotations give the twist; the confidence is the served pose's
         # against this frame's points (a lost frame's registered pose scores what it explains)
