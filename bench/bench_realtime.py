@@ -19,10 +19,12 @@ applied on top: over the clips' window parameters, and alone for the human.
 Printed per run: joints once tracking (Hz, of the camera's), latency cloud -> joints median
 / p95 (ms), the first skeleton (s after the first camera frame), the frames registered from
 pass 3 on and the registration's error on them (cm), each live joint's distance to its
-nearest true joint over every frame with joints (median / p95, cm), as
+nearest true joint over every frame with joints (median / p95, cm) and the live joints'
+articulated recall, moving recall and tracking skill from pass 3 on, as
 bench/score_realtime.py scores them, and the joint node's camera frames by the start of
 their joints (from the registered pose / from the frame before, `live_chain`) with the
-second fits it left out for time (its last /diagnostics, counted over the whole replay).
+second fits it left out for time and the starts that had a limb re-posed
+(`live_limb_poses`; its last /diagnostics, counted over the whole replay).
 The walker jumps back to the start of the walk at each pass; with `--bounce` every other
 pass plays the bag backwards (`replay --bounce`) and the motion stays continuous. Nothing
 else may run while it measures: every number is a time on a shared 2-core machine. The
@@ -47,7 +49,7 @@ sys.path.insert(0, str(REPO / 'bench'))
 
 from bench_live import simulated_bag  # noqa: E402
 from bench_real_motion import CLI, subjects  # noqa: E402
-from score_realtime import LIVE_FIT_KEYS, score  # noqa: E402
+from score_realtime import LIVE_FIT_KEYS, LIVE_FIT_OPTIONAL, score  # noqa: E402
 from skel_extract_ros.config import load_params_file  # noqa: E402
 
 DEFAULT_CLIPS = ('walk_normal', 'run_normal', 'cow', 'wave-both-hands_active', 'wave-left-hand_normal')
@@ -95,7 +97,8 @@ def replay_row(bag: Path, out: Path, loop: int, params: Path | None, bounce: boo
             'latency_ms': (int(found['latency'][1]), int(found['latency'][2])),
             'joints_hz': float(found['tracking'][4]), 'camera_hz': float(found['tracking'][5]),
             'registered_later': scores['registration'][1], 'registration_cm': scores['registration'][3],
-            'nearest_cm': scores['nearest_cm'], 'live_fits': scores['live_fits']}
+            'nearest_cm': scores['nearest_cm'], 'live_fits': scores['live_fits'],
+            'later': None if scores['later'] is None else scores['later'][1]}
 
 
 def main(argv=None) -> int:
@@ -133,9 +136,10 @@ def main(argv=None) -> int:
           f'window_size {args.window}{f"; parameters from {args.params}" if extra else ""}; work {work}\n')
     print('| bag | run | joints once tracking (Hz of camera) | latency median / p95 (ms) | first skeleton (s) '
           '| registered from pass 3 | registration error from pass 3 (cm) | live joint to nearest true joint: '
-          'median / p95 (cm) | camera frames from the registered pose / from the frame before / second fit '
-          'left out |')
-    print('|---|---|---|---|---|---|---|---|---|')
+          'median / p95 (cm) | live joints from pass 3: artic. recall / moving recall / tracking skill '
+          '| camera frames from the registered pose / from the frame before / second fit left out / start with a '
+          'limb re-posed |')
+    print('|---|---|---|---|---|---|---|---|---|---|')
     for name, source_args, params, human in rows:
         for run in range(1, args.runs + 1):
             try:
@@ -144,14 +148,18 @@ def main(argv=None) -> int:
                        simulated_bag(f'{name}_depth', [*source_args, '--depth-image'], 'room', 90, work))
                 row = replay_row(bag, work / f'{bag.name}_out', args.loop, params, args.bounce)
             except Exception as error:  # a row that fails is reported, the others still run
-                print(f'| {name} | {run} | failed: {type(error).__name__}: {error} |||||||', flush=True)
+                print(f'| {name} | {run} | failed: {type(error).__name__}: {error} ||||||||', flush=True)
                 continue
-            fits = row['live_fits']
+            fits, later = row['live_fits'], row['later']
+            counts = '-' if fits is None else ' / '.join(str(fits.get(key, '-'))
+                                                         for key in LIVE_FIT_KEYS + LIVE_FIT_OPTIONAL)
+            moving = '-' if later is None else \
+                f'{later.articulated_recall:.2f} / {later.moving_recall:.2f} / {later.tracking_skill:.2f}'
             print(f"| {name} | {run} | {row['joints_hz']:.1f} of {row['camera_hz']:.1f} "
                   f"| {row['latency_ms'][0]} / {row['latency_ms'][1]} | {row['first_s']:.1f} "
                   f"| {row['registered_later']} | {row['registration_cm']:.1f} "
-                  f"| {row['nearest_cm'][0]:.1f} / {row['nearest_cm'][1]:.1f} "
-                  f"| {'-' if fits is None else ' / '.join(str(fits[key]) for key in LIVE_FIT_KEYS)} |", flush=True)
+                  f"| {row['nearest_cm'][0]:.1f} / {row['nearest_cm'][1]:.1f} | {moving} "
+                  f"| {counts} |", flush=True)
     return 0
 
 

@@ -13,8 +13,8 @@ every live joint to its nearest true joint (median, p95): meaningful where the s
 match no joint, the registration's error (registered.npz against the repeated ground
 truth's material points, evaluate_registration), over all and from pass K on, and the joint
 node's camera frames by the start their joints came from (its last /diagnostics: from the
-registered pose, from the frame before with `live_chain`, and the second fits left out for
-time).
+registered pose, from the frame before with `live_chain`, the second fits left out for
+time, and with `live_limb_poses` the starts that had a limb re-posed).
 """
 from __future__ import annotations
 
@@ -38,16 +38,18 @@ from skel_extract_ros.app.evaluation import (GroundTruth, PredictedSkeleton, eva
 from skel_extract_ros.app.replay import looped_stamp  # noqa: E402
 
 
-# the joint node's diagnostics keys that count its camera frames' fits (README.md, Diagnostics)
+# the joint node's diagnostics keys that count its camera frames' fits (README.md, Diagnostics),
+# and those a recording made before them lacks (the frames whose start had a limb re-posed)
 LIVE_FIT_KEYS = ('live_fitted', 'live_chained', 'live_chain_skipped')
+LIVE_FIT_OPTIONAL = ('live_reposed',)
 
 
 def read_recording(recording: Path) -> tuple:
     """One pass over a replay's output.mcap (hundreds of MB: read once): (the live joints,
     a PredictedSkeleton of every skeleton/joints message with the newest description's
     joint count, in stamp order; the joint node's last /diagnostics counts of its camera
-    frames' fits, {key: int} for LIVE_FIT_KEYS, cumulative over the recording, or None
-    without such a status)."""
+    frames' fits, {key: int} for LIVE_FIT_KEYS and those of LIVE_FIT_OPTIONAL it has,
+    cumulative over the recording, or None without such a status)."""
     stamps, positions, description, fits = [], [], None, None
     with open(recording, 'rb') as stream:
         for _schema, channel, message in make_reader(stream).iter_messages(log_time_order=True):
@@ -61,7 +63,8 @@ def read_recording(recording: Path) -> tuple:
                 for status in deserialize_message(message.data, DiagnosticArray).status:
                     values = {value.key: value.value for value in status.values}
                     if all(key in values for key in LIVE_FIT_KEYS):
-                        fits = {key: int(values[key]) for key in LIVE_FIT_KEYS}
+                        fits = {key: int(values[key]) for key in LIVE_FIT_KEYS + LIVE_FIT_OPTIONAL
+                                if key in values}
     if description is None:
         raise SystemExit(f'{recording}: no skeleton/description recorded')
     n_joints = len(description['joint_names'])
@@ -146,7 +149,8 @@ def main(argv=None) -> int:
     fits = result['live_fits']
     if fits is not None:
         print(f"camera frames' joints: {fits['live_fitted']} from the registered pose, {fits['live_chained']} from "
-              f"the frame before; second fits left out for time: {fits['live_chain_skipped']}")
+              f"the frame before; second fits left out for time: {fits['live_chain_skipped']}; starts with a "
+              f"limb re-posed: {fits.get('live_reposed', '-')}")
     return 0
 
 

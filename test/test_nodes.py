@@ -567,11 +567,14 @@ def test_joint_estimation_node_live_camera_frames_do_not_wait_for_registration(r
     get joints from the model fitted to their points, with no registered frame after the
     last one; the joints follow the two bones, bending and walking 1 cm a frame (closer to
     the true joint than the registered frame's, which is what holding the last
-    registration would give). With live_chain, from the frame before too, when there is time."""
+    registration would give). With live_chain, from the frame before too, when there is time,
+    and (live_limb_poses, also on in that case only) each limb the frame shows elsewhere
+    started in a pose of the window's."""
     rest, registered, _, _, joint_path = two_bone_sequence(n_frames=24)
     walked = 0.01 * np.arange(len(registered))[:, None] * np.array([1.0, 0.0, 0.0])
     registered, joint_path = registered + walked[:, None, :], joint_path + walked
-    node = ros.add(JointEstimationNode, parameter_overrides=[Parameter('live_chain', value=live_chain)])
+    node = ros.add(JointEstimationNode, parameter_overrides=[Parameter('live_chain', value=live_chain),
+                                                             Parameter('live_limb_poses', value=live_chain)])
     assert node.live_frames == 'camera'
     joints = ros.listen('skeleton/joints', PoseArray, STREAM_QOS)
     description = ros.listen('skeleton/description', String, LATCHED_QOS)
@@ -582,6 +585,8 @@ def test_joint_estimation_node_live_camera_frames_do_not_wait_for_registration(r
     # the bounds below are Alg. 2's model's (its provisional Step 2 model has a test of its own)
     ros.wait(lambda: len(description) == 2, what="Alg. 2's description")
     child = [int(p) for p in node.stages.model_parents].index(0)
+    # the limbs' poses come from the window's (Alg. 2's poses of the frames it learned on)
+    assert (node.stages.camera_tracker.limb_poses is not None) == live_chain
     # camera frames only: the registration is "late", frame 12 is the newest registered one
     filt_pub = ros.publisher('filtered_points', PointCloud2, STREAM_QOS)
     ros.wait_matched(filt_pub)

@@ -11,7 +11,8 @@ The steps, by module:
 - Step 3, joints (Alg. 2): joints, articulated (LBS, Eq. 8; the bone blocks, Eq. 13-15),
   joint_centres (E_Joint's joint solve, the anchors, the pivot evidence), skeleton_model (the
   learned model);
-- live: the learned model fitted to one frame at a time; confidence; bone_rotations;
+- live: the learned model fitted to one frame at a time; limb_poses (the live fit's start
+  with each limb in a pose learned on the key frames); confidence; bone_rotations;
 - pipeline: Steps 0-3 on a sequence, as the nodes learn them from a stream;
 - shared: parameters (every parameter's default, range and description), rigid (the
   weighted rigid fit), point_sets, parallel (the one thread pool).

@@ -17,12 +17,15 @@ symmetric chamfer distance
     E_k = mean_{i in limb} min(d(x_i^k, V), c)^2 + mean_{v in U} min(d(v, X^k), c)^2
 
 over the limb's posed points x_i^k (a strided subset) and the observations U no other part of
-the start explains (farther than c from every other posed model point), c = CAP_MULTIPLE x
-the skeleton's own noise scale (core.confidence.half_residual: a hand's millimetres and a
-cow's centimetres alike). The first term keeps a limb off empty space, the second makes it
-explain the points the rest leaves; the start's own limb pose is hypothesis 0, and a limb is
-re-posed only when the best hypothesis scores under MARGIN x it. The fit that follows
-refines the pose as from any start.
+the start explains (farther than c from every other posed model point) within the limb's
+reach of its joint (its rest points' farthest distance from it, + c), c = CAP_MULTIPLE x the
+skeleton's own noise scale (core.confidence.half_residual: a hand's millimetres and a cow's
+centimetres alike). The first term keeps a limb off empty space, the second makes it explain
+the points the rest leaves; the start's own limb pose is hypothesis 0, and a limb is re-posed
+only when the best hypothesis scores under MARGIN x it. A frame that the start explains
+(fewer than MIN_SAMPLES observations farther than c from it) and a limb with fewer such
+observations in reach are left as they are. The fit that follows refines the pose as from
+any start.
 
 A limb starts where the tree branches: every bone whose parent is the root or has several
 children (an arm at the chest, a leg at the pelvis, a finger at the palm, the neck), with
@@ -55,8 +58,9 @@ MODEL_POINTS = 1000
 LIMB_POINTS = 30
 SCORED_OBSERVED = 1000
 UNEXPLAINED_POINTS = 60
-# neighbours of each observation among the start's posed points: enough that one of them
-# lies outside a limb when any posed point within the cap does
+# neighbours of each observation among the start's posed points, from which its distance to
+# the start without a limb is read: an observation whose nearest all lie on the limb counts as
+# one the rest leaves (it lies on the limb's own surface, which the limb's pose explains)
 NEIGHBOURS = 8
 
 
