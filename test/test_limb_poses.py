@@ -44,6 +44,11 @@ def test_limbs_start_where_the_tree_branches():
     assert poses.limbs == [1, 3, 4, 6, 7, 9]
     with pytest.raises(ValueError, match='key poses'):
         LimbPoses(model, rotations[:, :9], np.zeros((5, 9, 3)))
+    with pytest.raises(ValueError, match=r'\(N, 3\)'):
+        poses.repose(rotations[0], np.zeros((10, 3)), rng.normal(size=(50, 2)))
+    # a frame with too few finite points: the start comes back as it was, nothing re-posed
+    start_r, start_t, moved = poses.repose(rotations[0], np.zeros((10, 3)), np.full((50, 3), np.nan))
+    assert moved == [] and np.array_equal(start_r, rotations[0])
 
 
 def test_a_limb_beyond_the_fits_reach_is_started_in_a_learned_pose(learned):

@@ -118,10 +118,13 @@ class LimbPoses:
     def repose(self, rotations: np.ndarray, translations: np.ndarray, observed: np.ndarray) -> tuple:
         """The start (rotations (B, 3, 3), translations (B, 3)) with each limb whose best key
         pose explains observed (N, 3) m (non-finite rows ignored) clearly better put in that
-        pose: (rotations, translations), copies, and the limbs re-posed (list of bones)."""
+        pose: (rotations, translations), copies, and the limbs re-posed (list of bones).
+        Raises ValueError on observed points that are not (N, 3)."""
         rotations = np.array(rotations, dtype=np.float64)
         translations = np.array(translations, dtype=np.float64)
         observed = np.asarray(observed, dtype=np.float64)
+        if observed.ndim != 2 or observed.shape[1] != 3:
+            raise ValueError(f'observed points must be (N, 3), got shape {observed.shape}')
         observed = observed[finite_rows(observed)]
         observed = observed[::max(1, -(-len(observed) // SCORED_OBSERVED))]
         moved = []
