@@ -38,6 +38,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .bone_rotations import children_of
 from .confidence import MIN_SAMPLES, half_residual
 from .growth import farthest_poses
 from .point_sets import finite_rows
@@ -89,9 +90,8 @@ class LimbPoses:
         self._neighbour_labels = np.append(self._labels, -1)
         self._parents = parents
         self._cap = CAP_MULTIPLE * half_residual(model.noise_m)
-        children = [np.flatnonzero(parents == b) for b in range(B)]
-        order = _top_down(parents, children)
-        self.limbs = [int(b) for b in order
+        children = children_of(parents)
+        self.limbs = [int(b) for b in _breadth_first(parents, children)
                       if parents[b] >= 0 and (parents[parents[b]] < 0 or len(children[parents[b]]) > 1)]
         self.reposed = 0
         self._bones, self._points, self._local, self._relative, self._reach = {}, {}, {}, {}, {}
@@ -180,9 +180,12 @@ class LimbPoses:
         return distance.reshape(len(observed), k), nearest.reshape(len(observed), k)
 
 
-def _top_down(parents: np.ndarray, children: list) -> list:
-    """The bones in breadth-first order from the root (parents (B,), -1 at the root)."""
-    order = list(np.flatnonzero(parents < 0))
+def _breadth_first(parents: np.ndarray, children: list) -> list:
+    """The bones in breadth-first order from the root (parents (B,), -1 at the root;
+    children: bone_rotations.children_of's): every top-level limb before the limbs below
+    them (bone_rotations.depth_first is parents-first too, but scores a limb's sub-limbs
+    before its siblings)."""
+    order = [int(b) for b in np.flatnonzero(parents < 0)]
     for bone in order:                     # grows while iterated: a loop over bones
         order.extend(children[bone])
     return order
