@@ -4,7 +4,8 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from skel_extract_ros.core.point_sets import finite_rows, ransac_plane, statistical_inliers, voxel_centroids
+from skel_extract_ros.core.point_sets import (finite_rows, ransac_plane, statistical_inliers, strided_subset,
+                                              subset_stride, voxel_centroids)
 
 
 def _surface_with_flying_pixels(seed=0, n=5000, flying=60):
@@ -68,3 +69,15 @@ def test_finite_rows_is_isfinite_all(dtype):
     assert not expected.all() and expected.any()
     np.testing.assert_array_equal(finite_rows(points), expected)
     assert finite_rows(points[:0]).shape == (0,)
+
+
+@pytest.mark.parametrize('count', [0, 1, 999, 1000, 1001, 2999, 3000, 3001, 54321])
+def test_strided_subset_keeps_at_most_the_cap_and_as_many_as_a_stride_allows(count):
+    rows = np.arange(count)
+    subset = strided_subset(rows, 1000)
+    assert len(subset) <= 1000
+    assert len(subset) == len(rows[::subset_stride(count, 1000)])
+    # the smallest such stride: one less would keep more than the cap
+    stride = subset_stride(count, 1000)
+    assert stride == 1 or len(rows[::stride - 1]) > 1000
+    np.testing.assert_array_equal(subset, rows[::stride])

@@ -49,7 +49,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .point_sets import finite_rows
+from .point_sets import finite_rows, strided_subset
 from .registration.visibility import ObservedView
 
 # a bone's confidence is one half at an RMS residual of this many times the skeleton's own
@@ -87,7 +87,7 @@ def fit_noise(posed: np.ndarray, observed: list) -> float | None:
         observed_points = observed_points[finite_rows(observed_points)]
         if len(observed_points) == 0:
             continue
-        observed_points = observed_points[::max(1, -(-len(observed_points) // NOISE_SAMPLES))]
+        observed_points = strided_subset(observed_points, NOISE_SAMPLES)
         distance, _ = cKDTree(points).query(observed_points)
         rms.append(np.sqrt(np.mean(distance ** 2)))
     return float(np.median(rms)) if rms else None

@@ -41,7 +41,7 @@ from scipy.spatial import cKDTree
 from .bone_rotations import children_of
 from .confidence import MIN_SAMPLES, half_residual
 from .growth import farthest_poses
-from .point_sets import finite_rows
+from .point_sets import finite_rows, strided_subset, subset_stride
 from .skeleton_model import SkeletonModel
 
 # the truncation of the chamfer distance in units of the skeleton's noise scale
@@ -84,7 +84,7 @@ class LimbPoses:
             raise ValueError(f'key poses must be (K, {B}, 3, 3) rotations and (K, {B}, 3) translations, got '
                              f'{key_rotations.shape} and {key_translations.shape}')
         rest = np.asarray(model.rest_points, dtype=np.float64)
-        stride = max(1, -(-len(rest) // MODEL_POINTS))
+        stride = subset_stride(len(rest), MODEL_POINTS)
         self._rest, self._labels = rest[::stride], np.asarray(model.labels, dtype=np.int64)[::stride]
         # a neighbour query's "none within the cap" index is the subset's length: no bone
         self._neighbour_labels = np.append(self._labels, -1)
@@ -103,7 +103,7 @@ class LimbPoses:
                 continue
             # how far from its joint any pose of the limb can put its points
             self._reach[limb] = float(np.max(np.linalg.norm(self._rest[members] - rest_joints[limb], axis=1)))
-            points = members[::max(1, -(-len(members) // LIMB_POINTS))]
+            points = strided_subset(members, LIMB_POINTS)
             local = np.searchsorted(bones, self._labels[points])                  # bones is sorted
             parent = parents[limb]
             # A_p^k^-1 A_j^k for the limb's bones j: (K, b, 3, 3), (K, b, 3)
@@ -126,7 +126,7 @@ class LimbPoses:
         if observed.ndim != 2 or observed.shape[1] != 3:
             raise ValueError(f'observed points must be (N, 3), got shape {observed.shape}')
         observed = observed[finite_rows(observed)]
-        observed = observed[::max(1, -(-len(observed) // SCORED_OBSERVED))]
+        observed = strided_subset(observed, SCORED_OBSERVED)
         moved = []
         if len(observed) < MIN_SAMPLES or not self._relative:
             return rotations, translations, moved
@@ -148,7 +148,7 @@ class LimbPoses:
             unexplained = observed[(rest_distance >= cap) & reachable]
             if len(unexplained) < MIN_SAMPLES:
                 continue
-            unexplained = unexplained[::max(1, -(-len(unexplained) // UNEXPLAINED_POINTS))]
+            unexplained = strided_subset(unexplained, UNEXPLAINED_POINTS)
             hypotheses_r = np.einsum('ij,kbjl->kbil', rotations[parent], relative_rotations)
             hypotheses_t = np.einsum('ij,kbj->kbi', rotations[parent], relative_translations) + translations[parent]
             start = np.einsum('nij,nj->ni', rotations[bones[local]], self._rest[points]) + translations[bones[local]]

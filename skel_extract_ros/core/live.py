@@ -54,7 +54,7 @@ from .confidence import half_residual, joint_confidence, outside_silhouette
 from .gmm import CandidateCache
 from .joints import JointParams
 from .limb_poses import LimbPoses
-from .point_sets import finite_rows, median_spacing
+from .point_sets import finite_rows, median_spacing, strided_subset, subset_stride
 from .registration.visibility import ObservedView
 from .rigid import fit_rigid_segments, weighted_rigid_fit
 from .skeleton_model import SkeletonModel
@@ -95,7 +95,7 @@ class _BoneBlocks:
         rest = np.asarray(model.rest_points, dtype=np.float64)
         # max_points: fit an evenly strided subset of the model (the rest points are in
         # no spatial order, so a stride keeps every bone's share)
-        stride = 1 if max_points is None else max(1, -(-len(rest) // max_points))
+        stride = 1 if max_points is None else subset_stride(len(rest), max_points)
         self._subset = np.arange(0, len(rest), stride)
         rest = rest[self._subset]
         self._rest = rest
@@ -187,7 +187,7 @@ class _BoneBlocks:
                                     self._weights)
         points = points[finite_rows(points)]
         # a strided subset, as the fit uses: the mean residual per bone needs no more
-        points = points[::max(1, -(-len(points) // CONFIDENCE_SAMPLES))]
+        points = strided_subset(points, CONFIDENCE_SAMPLES)
         if len(points) == 0:
             return np.zeros(self.n_bones)
         distance, nearest = cKDTree(posed).query(points)
@@ -293,7 +293,7 @@ class ArticulatedTracker(_BoneBlocks):
         observed = observed[finite_rows(observed)]
         if len(observed) == 0:
             raise ValueError('observed points: none is finite')
-        observed = observed[::max(1, -(-len(observed) // self.max_observed))]
+        observed = strided_subset(observed, self.max_observed)
         params = self.params
         rotations, translations = self.predict()
         anchors = (rotations.copy(), translations.copy())

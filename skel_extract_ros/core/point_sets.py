@@ -1,5 +1,6 @@
 """The point-set operations of the per-frame path, in numpy / scipy: voxel-grid centroids,
-statistical outlier removal and a RANSAC plane.
+statistical outlier removal, a RANSAC plane, and the strided subsets the per-frame steps
+sample their points with.
 
 Open3D does each of them well, but importing it costs a process about 170 MB resident,
 and the registration node needs these three for every camera frame, for as long as it
@@ -23,6 +24,18 @@ def finite_rows(points: np.ndarray) -> np.ndarray:
     faster than `np.isfinite(points).all(axis=1)`, which reduces along the short axis."""
     points = np.asarray(points)
     return np.isfinite(points[:, 0] + points[:, 1] + points[:, 2])
+
+
+def subset_stride(count: int, at_most: int) -> int:
+    """The smallest stride (>= 1) that leaves at most `at_most` of `count` rows: the cap on
+    the points a per-frame step samples. A stride keeps every region's share, because the
+    model's and the camera's points come in no spatial order that one would bias."""
+    return max(1, -(-int(count) // max(1, int(at_most))))
+
+
+def strided_subset(rows: np.ndarray, at_most: int) -> np.ndarray:
+    """rows (N, ...) taken at `subset_stride`: at most `at_most` of them, evenly spread."""
+    return rows[::subset_stride(len(rows), at_most)]
 
 
 def median_spacing(points: np.ndarray) -> float:
