@@ -17,14 +17,16 @@ on the defaults (the 60-frame window), played `--loop` times.
 applied on top: over the clips' window parameters, and alone for the human.
 
 Printed per run: joints once tracking (Hz, of the camera's), latency cloud -> joints median
-/ p95 (ms), the first skeleton (s after the first camera frame), the frames registered from
-pass 3 on and the registration's error on them (cm), each live joint's distance to its
-nearest true joint over every frame with joints (median / p95, cm) and the live joints'
-articulated recall, moving recall and tracking skill from pass 3 on, as
-bench/score_realtime.py scores them, and the joint node's camera frames by the start of
-their joints (from the registered pose / from the frame before, `live_chain`) with the
-second fits it left out for time and the starts that had a limb re-posed
-(`live_limb_poses`; its last /diagnostics, counted over the whole replay).
+/ p95 (ms), the first skeleton (s after the first camera frame), the pass scored from (the
+first that starts after the newest skeleton's first live joints: every frame of it a miss
+unless answered), the frames registered from it on and the registration's error on them
+(cm), each live joint's distance to its nearest true joint over every frame with joints
+(median / p95, cm) and the live joints' articulated recall, moving recall and tracking
+skill from that pass on, as bench/score_realtime.py scores them, and the joint node's
+camera frames by the start of their joints (from the registered pose / from the frame
+before, `live_chain`) with the second fits it left out for time, the starts that had a
+limb re-posed (`live_limb_poses`) and the frames the live fit had no time for, answered
+between two fitted ones (its last /diagnostics, counted over the whole replay).
 The walker jumps back to the start of the walk at each pass; with `--bounce` every other
 pass plays the bag backwards (`replay --bounce`) and the motion stays continuous. Nothing
 else may run while it measures: every number is a time on a shared 2-core machine. The
@@ -96,7 +98,7 @@ def replay_row(bag: Path, out: Path, loop: int, params: Path | None, bounce: boo
     return {'first_s': float(found['first_s'][1]),
             'latency_ms': (int(found['latency'][1]), int(found['latency'][2])),
             'joints_hz': float(found['tracking'][4]), 'camera_hz': float(found['tracking'][5]),
-            'registered_later': scores['registration'][1], 'registration_cm': scores['registration'][3],
+            'from_pass': scores['from_pass'], 'registered_later': scores['registration'][1], 'registration_cm': scores['registration'][3],
             'nearest_cm': scores['nearest_cm'], 'live_fits': scores['live_fits'],
             'later': None if scores['later'] is None else scores['later'][1]}
 
@@ -135,11 +137,11 @@ def main(argv=None) -> int:
     print(f'replay --realtime --loop {args.loop}{" --bounce" if args.bounce else ""}; clips: depth images, '
           f'window_size {args.window}{f"; parameters from {args.params}" if extra else ""}; work {work}\n')
     print('| bag | run | joints once tracking (Hz of camera) | latency median / p95 (ms) | first skeleton (s) '
-          '| registered from pass 3 | registration error from pass 3 (cm) | live joint to nearest true joint: '
-          'median / p95 (cm) | live joints from pass 3: artic. recall / moving recall / tracking skill '
+          '| scored from pass | registered from it | registration error from it (cm) | live joint to nearest true '
+          'joint: median / p95 (cm) | live joints from it: artic. recall / moving recall / tracking skill '
           '| camera frames from the registered pose / from the frame before / second fit left out / start with a '
-          'limb re-posed |')
-    print('|---|---|---|---|---|---|---|---|---|---|')
+          'limb re-posed / interpolated |')
+    print('|---|---|---|---|---|---|---|---|---|---|---|')
     for name, source_args, params, human in rows:
         for run in range(1, args.runs + 1):
             try:
@@ -148,7 +150,7 @@ def main(argv=None) -> int:
                        simulated_bag(f'{name}_depth', [*source_args, '--depth-image'], 'room', 90, work))
                 row = replay_row(bag, work / f'{bag.name}_out', args.loop, params, args.bounce)
             except Exception as error:  # a row that fails is reported, the others still run
-                print(f'| {name} | {run} | failed: {type(error).__name__}: {error} ||||||||', flush=True)
+                print(f'| {name} | {run} | failed: {type(error).__name__}: {error} |||||||||', flush=True)
                 continue
             fits, later = row['live_fits'], row['later']
             counts = '-' if fits is None else ' / '.join(str(fits.get(key, '-'))
@@ -157,7 +159,7 @@ def main(argv=None) -> int:
                 f'{later.articulated_recall:.2f} / {later.moving_recall:.2f} / {later.tracking_skill:.2f}'
             print(f"| {name} | {run} | {row['joints_hz']:.1f} of {row['camera_hz']:.1f} "
                   f"| {row['latency_ms'][0]} / {row['latency_ms'][1]} | {row['first_s']:.1f} "
-                  f"| {row['registered_later']} | {row['registration_cm']:.1f} "
+                  f"| {row['from_pass']} of {args.loop} | {row['registered_later']} | {row['registration_cm']:.1f} "
                   f"| {row['nearest_cm'][0]:.1f} / {row['nearest_cm'][1]:.1f} | {moving} "
                   f"| {counts} |", flush=True)
     return 0

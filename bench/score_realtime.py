@@ -8,13 +8,16 @@ The live joints, one PoseArray per camera frame, are read from skeleton/joints i
 output.mcap, with the newest skeleton/description's joint names (skeleton.json has the
 same frames, but `evaluate` matches stamps to the bag's ground truth, which covers the
 first pass of a loop only). Printed: the evaluate scores over every frame with
-joints and over the passes from K on (after the skeleton was learned), the distance of
+joints and over the passes from K on (by default the first pass that starts after the
+newest skeleton's first live joints: every frame of it is one the nodes could answer, and
+a frame they leave unanswered is a miss), the distance of
 every live joint to its nearest true joint (median, p95): meaningful where the scores
 match no joint, the registration's error (registered.npz against the repeated ground
 truth's material points, evaluate_registration), over all and from pass K on, and the joint
 node's camera frames by the start their joints came from (its last /diagnostics: from the
 registered pose, from the frame before with `live_chain`, the second fits left out for
-time, and with `live_limb_poses` the starts that had a limb re-posed).
+time, with `live_limb_poses` the starts that had a limb re-posed, and the frames the live
+fit had no time for, answered between two fitted ones).
 """
 from __future__ import annotations
 
@@ -39,9 +42,10 @@ from skel_extract_ros.app.replay import looped_stamp  # noqa: E402
 
 
 # the joint node's diagnostics keys that count its camera frames' fits (README.md, Diagnostics),
-# and those a recording made before them lacks (the frames whose start had a limb re-posed)
+# and those a recording made before them lacks (the frames whose start had a limb re-posed, the
+# frames answered between two fitted ones)
 LIVE_FIT_KEYS = ('live_fitted', 'live_chained', 'live_chain_skipped')
-LIVE_FIT_OPTIONAL = ('live_reposed',)
+LIVE_FIT_OPTIONAL = ('live_reposed', 'live_interpolated')
 
 
 def read_recording(recording: Path) -> tuple:
@@ -49,15 +53,18 @@ def read_recording(recording: Path) -> tuple:
     a PredictedSkeleton of every skeleton/joints message with the newest description's
     joint count, in stamp order; the joint node's last /diagnostics counts of its camera
     frames' fits, {key: int} for LIVE_FIT_KEYS and those of LIVE_FIT_OPTIONAL it has,
-    cumulative over the recording, or None without such a status)."""
-    stamps, positions, description, fits = [], [], None, None
+    cumulative over the recording, or None without such a status; the stamp (s) of the
+    first camera frame answered live by a skeleton of that joint count, `live_start_stamp`)."""
+    stamps, logged, positions, descriptions, fits = [], [], [], [], None
     with open(recording, 'rb') as stream:
         for _schema, channel, message in make_reader(stream).iter_messages(log_time_order=True):
             if channel.topic.endswith('skeleton/description'):
-                description = json.loads(deserialize_message(message.data, String).data)
+                descriptions.append((message.log_time * 1e-9,
+                                     json.loads(deserialize_message(message.data, String).data)))
             elif channel.topic.endswith('skeleton/joints'):
                 msg = deserialize_message(message.data, PoseArray)
                 stamps.append(msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9)
+                logged.append(message.log_time * 1e-9)
                 positions.append([[p.position.x, p.position.y, p.position.z] for p in msg.poses])
             elif channel.topic == '/diagnostics':
                 for status in deserialize_message(message.data, DiagnosticArray).status:
@@ -65,13 +72,32 @@ def read_recording(recording: Path) -> tuple:
                     if all(key in values for key in LIVE_FIT_KEYS):
                         fits = {key: int(values[key]) for key in LIVE_FIT_KEYS + LIVE_FIT_OPTIONAL
                                 if key in values}
-    if description is None:
+    if not descriptions:
         raise SystemExit(f'{recording}: no skeleton/description recorded')
+    description = descriptions[-1][1]
     n_joints = len(description['joint_names'])
     keep = [i for i, p in enumerate(positions) if len(p) == n_joints]
+    learned_at = min(log_s for log_s, entry in descriptions if len(entry['joint_names']) == n_joints)
     order = np.argsort(np.array(stamps)[keep], kind='stable')
-    return (PredictedSkeleton(description['joint_names'], description['parents'], np.array(stamps)[keep][order],
-                              np.array([positions[i] for i in keep])[order]), fits)
+    skeleton = PredictedSkeleton(description['joint_names'], description['parents'], np.array(stamps)[keep][order],
+                                 np.array([positions[i] for i in keep])[order])
+    return skeleton, fits, live_start_stamp(np.array(stamps)[keep], np.array(logged)[keep], learned_at)
+
+
+def live_start_stamp(stamps: np.ndarray, logged: np.ndarray, learned_at: float) -> float:
+    """The stamp (s) of the first camera frame a skeleton learned at log time `learned_at`
+    (s) answers live, from its joints messages' stamps (J,) and log times (J,) s.
+
+    When the skeleton is learned the node also publishes the joints of the frames it was
+    learned on, stamped with those frames, seconds before the log time; from then on each
+    camera frame is answered a latency after its stamp. That latency is the median over
+    the joints logged since (the newer half at most), and the first live frame is the one
+    the learning's log time, less it, reaches."""
+    since = logged >= learned_at
+    if not since.any():
+        return float(stamps.min(initial=np.inf))
+    lag = np.median((logged - stamps)[since][-max(1, since.sum() // 2):])
+    return float(learned_at - lag)
 
 
 def looped(gt: GroundTruth, until_s: float, bounce: bool = False) -> tuple:
@@ -94,14 +120,25 @@ def looped(gt: GroundTruth, until_s: float, bounce: bool = False) -> tuple:
     return dataclasses.replace(gt, **fields), pass_s
 
 
-def score(bag: Path, out: Path, from_pass: int = 3, bounce: bool = False) -> dict:
+def first_full_pass(first_stamp: float, start_stamp: float, pass_s: float) -> int:
+    """The index of the first pass of a loop that starts at or after `first_stamp` (s), the
+    loop starting at `start_stamp` (s), each pass `pass_s` long."""
+    # a hundredth of a pass: the stamps of a pass's first frame and of the joints answering
+    # it are the same number written by two programs
+    return max(0, int(np.ceil((first_stamp - start_stamp) / pass_s - 0.01)))
+
+
+def score(bag: Path, out: Path, from_pass: int | None = None, bounce: bool = False) -> dict:
     """The live joints and registered frames of a replay in `out` against the bag's ground
     truth, repeated for each pass: {'all' / 'later': JointReport or None (every frame with
-    joints / from pass `from_pass` on), 'nearest_cm': (median, p95) of each live joint's
-    distance to its nearest true joint, 'registration': (frames, frames from the pass,
-    mean cm, mean cm from the pass), 'live_fits': read_recording's counts or None}."""
-    pred, fits = read_recording(out / 'output.mcap')
+    joints / from pass `from_pass` on; None: the first pass that starts after the newest
+    skeleton's first live joints, read_recording's), 'from_pass': that pass, 'nearest_cm': (median, p95) of each
+    live joint's distance to its nearest true joint, 'registration': (frames, frames from
+    the pass, mean cm, mean cm from the pass), 'live_fits': read_recording's counts or None}."""
+    pred, fits, live_from = read_recording(out / 'output.mcap')
     gt, pass_s = looped(GroundTruth.load(bag / 'gt.npz'), float(pred.stamps.max()), bounce)
+    if from_pass is None:
+        from_pass = first_full_pass(live_from, float(gt.stamps[0]), pass_s)
     later = pred.stamps >= gt.stamps[0] + from_pass * pass_s
     result = {}
     for name, chosen in (('all', np.ones(len(pred.stamps), bool)), ('later', later)):
@@ -122,6 +159,7 @@ def score(bag: Path, out: Path, from_pass: int = 3, bounce: bool = False) -> dic
     result['registration'] = (len(per_frame), int(tracking.sum()), 100 * scores['mean_error_m'],
                               100 * per_frame[-tracking.sum():].mean() if tracking.any() else float('nan'))
     result['live_fits'] = fits
+    result['from_pass'] = from_pass
     return result
 
 
@@ -129,11 +167,13 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('bag', type=Path)
     parser.add_argument('out', type=Path)
-    parser.add_argument('--from-pass', type=int, default=3)
+    parser.add_argument('--from-pass', type=int, default=None,
+                        help='score from this pass of the loop on (default: the first after the first live joints)')
     parser.add_argument('--bounce', action='store_true', help='the replay ran with --bounce')
     args = parser.parse_args(argv)
     result = score(args.bag, args.out, args.from_pass, args.bounce)
-    for key, name in (('all', 'every frame with joints'), ('later', f'from pass {args.from_pass}')):
+    from_pass = result['from_pass']
+    for key, name in (('all', 'every frame with joints'), ('later', f'from pass {from_pass}')):
         if result[key] is None:
             print(f'{name}: no frame')
             continue
@@ -144,13 +184,14 @@ def main(argv=None) -> int:
     median, p95 = result['nearest_cm']
     print(f'distance of each live joint to its nearest true joint: median {median:.1f} cm, p95 {p95:.1f} cm')
     frames, later_frames, mean, later_mean = result['registration']
-    print(f'registration: {frames} frames ({later_frames} from pass {args.from_pass}), mean '
-          f'{mean:.1f} cm, from pass {args.from_pass} mean {later_mean:.1f} cm')
+    print(f'registration: {frames} frames ({later_frames} from pass {from_pass}), mean '
+          f'{mean:.1f} cm, from pass {from_pass} mean {later_mean:.1f} cm')
     fits = result['live_fits']
     if fits is not None:
         print(f"camera frames' joints: {fits['live_fitted']} from the registered pose, {fits['live_chained']} from "
               f"the frame before; second fits left out for time: {fits['live_chain_skipped']}; starts with a "
-              f"limb re-posed: {fits.get('live_reposed', '-')}")
+              f"limb re-posed: {fits.get('live_reposed', '-')}; frames the fit had no time for, interpolated: "
+              f"{fits.get('live_interpolated', '-')}")
     return 0
 
 

@@ -213,8 +213,22 @@ def test_score_realtime_counts_the_joint_nodes_camera_fits_from_its_last_diagnos
                 status('/accumulator_node', rate_in_hz=30.0),
                 status(joint, live_fitted=12, live_chained=30, live_chain_skipped=7),
                 status('/registration_node', rate_in_hz=1.0)]
-    skeleton, fits = read_recording(recording(tmp_path / 'both', statuses))
+    skeleton, fits, _ = read_recording(recording(tmp_path / 'both', statuses))
     assert fits == {'live_fitted': 12, 'live_chained': 30, 'live_chain_skipped': 7}
     np.testing.assert_allclose(skeleton.stamps, [1.0, 2.0, 3.0, 4.0])
     np.testing.assert_allclose(skeleton.positions[:, 1], [[0.1 * s, 0.0, 1.0] for s in range(1, 5)])
     assert read_recording(recording(tmp_path / 'none', statuses[1:2]))[1] is None
+
+
+def test_score_realtime_scores_from_the_first_pass_the_live_joints_cover_whole():
+    """The scored passes start at the first pass that begins at or after the first live
+    joints, so a skeleton learned late in a pass leaves no unanswerable frame in them (and
+    joints stamped with a pass's first frame start at that pass)."""
+    sys.path.insert(0, str(REPO / 'bench'))
+    from score_realtime import first_full_pass
+    pass_s = 3.0
+    assert first_full_pass(100.0, 100.0, pass_s) == 0
+    assert first_full_pass(100.0 + 2 * pass_s, 100.0, pass_s) == 2          # the pass's first frame
+    assert first_full_pass(100.0 + 2 * pass_s + 0.033, 100.0, pass_s) == 3
+    assert first_full_pass(100.0 + 8.9, 100.0, pass_s) == 3
+    assert first_full_pass(99.0, 100.0, pass_s) == 0

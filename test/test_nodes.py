@@ -629,6 +629,52 @@ def test_joint_estimation_node_live_camera_frames_do_not_wait_for_registration(r
     assert posed_error.mean() < 0.85 * held_points.mean(), (posed_error, held_points)
 
 
+def test_joint_estimation_node_answers_the_camera_frames_its_live_fit_had_no_time_for(ros):
+    """Camera frames that come faster than the live fit (the Worker keeps the newest) still
+    get joints, published in stamp order before the next fitted frame: between the two
+    fitted frames around them, linear in time, trusted no more than either, and counted
+    (`live_interpolated`). Joints for every camera frame, not for those the fit took."""
+    rest, registered, _, _, _ = two_bone_sequence(n_frames=24)
+    node = ros.add(JointEstimationNode)
+    joints = ros.listen('skeleton/joints', PoseArray, STREAM_QOS)
+    confidence = ros.listen('skeleton/confidence', String, STREAM_QOS)
+    description = ros.listen('skeleton/description', String, LATCHED_QOS)
+    _learn_frames_0_to_11_with_12_registered_after(ros, node, rest, registered)
+    ros.wait(lambda: len(joints) == 13 and len(description) == 2, what="Alg. 2's skeleton and the window's joints")
+    camera = node.stages.camera_tracker
+    fit, fitted = camera.track, []
+
+    def slow_fit(stamp, *args, **kwargs):  # a fit slower than the camera, as on a busy machine
+        time.sleep(0.08)
+        fitted.append(stamp)
+        return fit(stamp, *args, **kwargs)
+    camera.track = slow_fit
+    filt_pub = ros.publisher('filtered_points', PointCloud2, STREAM_QOS)
+    ros.wait_matched(filt_pub)
+    for i in range(13, 24):                 # 11 camera frames in about 0.2 s
+        filt_pub.publish(cloud_message(registered[i], header(T0 + i * DT)))
+        time.sleep(0.02)
+    ros.wait(lambda: len(joints) == 24, what='joints for every camera frame')
+    assert stamps_of(joints) == [T0 + i * DT for i in range(24)]
+    fits = node.stages.live_fits
+    assert node.stages.live.dropped > 0 and fits['interpolated'] == node.stages.live.dropped
+    assert fits['fitted'] + fits['chained'] + fits['interpolated'] == 11
+    assert node._diagnostics()[2]['live_interpolated'] == fits['interpolated']
+    ros.wait(lambda: len(confidence) >= 24, what='the confidence of every frame')
+    assert [json.loads(m.data)['stamp_ns'] for m in confidence[13:24]] == [T0 + i * DT for i in range(13, 24)]
+    stamps = np.array(stamps_of(joints)[13:])
+    positions = np.array([[[p.position.x, p.position.y, p.position.z] for p in m.poses] for m in joints[13:]])
+    trust = np.array([json.loads(m.data)['confidence'] for m in confidence[13:24]])
+    is_fitted = np.isin(stamps, fitted)
+    assert is_fitted[0] and is_fitted[-1] and not is_fitted.all()
+    for k in np.flatnonzero(~is_fitted):
+        before, after = np.flatnonzero(is_fitted[:k])[-1], k + np.flatnonzero(is_fitted[k:])[0]
+        share = (stamps[k] - stamps[before]) / (stamps[after] - stamps[before])
+        np.testing.assert_allclose(positions[k], (1 - share) * positions[before] + share * positions[after],
+                                   atol=1e-9)
+        np.testing.assert_allclose(trust[k], np.minimum(trust[before], trust[after]), atol=1e-4)
+
+
 def test_joint_estimation_node_tracks_the_step2_skeleton_while_alg2_runs(ros, held_alg2):
     """live_frames camera: a structure gives a provisional description (Step 2's joints, each
     point on its bone) and live joints at once, while Alg. 2 runs; Alg. 2's description then

@@ -10,6 +10,7 @@ node's SkeletonOutput (nodes/skeleton_output.py).
 from __future__ import annotations
 
 import collections
+import copy
 import threading
 import time
 
@@ -56,6 +57,9 @@ class JointStages:
         self.camera_tracker = None           # its CameraTracker (live_frames camera)
         self.model_parents = None
         self.last_published = None           # stamp of the newest frame with joints published
+        # the newest camera frame the live fit answered: (its DescribedSkeleton, (stamp ns,
+        # header, positions (J, 3), hints, confidence (J,))); None after a frame without joints
+        self._last_fitted = None
         self._early_structure = None
         self._moved = []                     # (structure number, joint names it moved), not yet described
         self._structures = 0                 # structures accepted so far: each job's number
@@ -67,7 +71,7 @@ class JointStages:
         self.live_ms = collections.deque(maxlen=1000)      # per live frame fit
         self.joints_rate = RateMeter()
         self.live_fits = {'fitted': 0, 'chained': 0, 'lost': 0, 'registered': 0, 'too_few_points': 0,
-                          'chain_skipped': 0, 'reposed': 0}
+                          'chain_skipped': 0, 'reposed': 0, 'interpolated': 0}
         self._camera_stamps = collections.deque(maxlen=CAMERA_PERIOD_FRAMES + 1)   # the newest frames' stamps, ns
         self.live = Worker(self._live_camera_frame, 'live', capacity=1, on_error=self._live_failed)
 
@@ -114,6 +118,7 @@ class JointStages:
                     del frames[stamp]
             had_model = self.tracker is not None
             self.tracker, self.camera_tracker, self.last_published = None, None, None
+            self._last_fitted = None
             early, self._early_structure = self._early_structure, None
             self._moved.clear()
         if had_model:
@@ -347,6 +352,11 @@ class JointStages:
             registered = self.registered_only[registered_stamp][1]
             camera, described = self.camera_tracker, self.described
             self.last_published = stamp
+            last_fitted, self._last_fitted = self._last_fitted, None
+            # the camera frames since the last one fitted (by this model) that the live fit had
+            # no time for (the Worker kept the newest): answered below, between the two
+            previous = last_fitted[1] if last_fitted is not None and last_fitted[0] is described else None
+            unanswered = [] if previous is None else [s for s in self._camera_stamps if previous[0] < s < stamp]
         started = time.perf_counter()
         camera.registered(registered_stamp, registered)      # nothing to do when already taken
         if registered_stamp != stamp and finite_rows(observed).sum() < 10:
@@ -362,6 +372,13 @@ class JointStages:
         self.live_fits['chain_skipped'] += camera.chain_skipped - skipped
         self.live_fits['reposed'] += camera.counts['reposed'] - reposed
         self.live_ms.append(1000.0 * (time.perf_counter() - started))
+        current = (stamp, header, positions, np.array(camera.pose[0]), np.array(camera.confidence))
+        for unanswered_stamp in unanswered:
+            self._publish_joints(described, *interpolated_frame(previous, current, unanswered_stamp))
+        self.live_fits['interpolated'] += len(unanswered)
+        with self._lock:
+            if self.last_published == stamp:     # no rest pose came meanwhile
+                self._last_fitted = (described, current)
         # the fit's own bone rotations give the twist; the confidence is the served pose's
         # against this frame's points (a lost frame's registered pose scores what it explains)
         self._publish_joints(described, header, positions, camera.pose[0], camera.confidence)
@@ -380,6 +397,23 @@ class JointStages:
         """positions (J, 3) m; hints (B, 3, 3) the fit's bone rotations; confidence (J,)."""
         self.joints_rate.tick()
         self.output.publish(described, header, positions, hints, confidence)
+
+
+def interpolated_frame(before: tuple, after: tuple, stamp: int) -> tuple:
+    """The joints of a camera frame stamped `stamp` (ns) that the live fit had no time for,
+    between the frames fitted before and after it (each (stamp ns, header, positions (J,
+    3) m, hints, confidence (J,))): (header, positions, hints, confidence) with the
+    positions linear in time between the two, the hints (the bone rotations that give the
+    twist) of the nearer frame, and the lower of the two confidences, joint by joint:
+    nothing measured this frame's points, so it is trusted no more than either side."""
+    (stamp_0, header_0, positions_0, hints_0, confidence_0), (stamp_1, header_1, positions_1, hints_1,
+                                                             confidence_1) = before, after
+    share = (stamp - stamp_0) / max(stamp_1 - stamp_0, 1)
+    header = copy.deepcopy(header_1)
+    header.stamp.sec, header.stamp.nanosec = divmod(int(stamp), 1_000_000_000)
+    positions = (1.0 - share) * np.asarray(positions_0) + share * np.asarray(positions_1)
+    hints = hints_0 if share < 0.5 else hints_1
+    return header, positions, hints, np.minimum(confidence_0, confidence_1)
 
 
 def camera_period(stamps) -> float | None:
