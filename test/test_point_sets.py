@@ -4,8 +4,10 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from skel_extract_ros.core.point_sets import (finite_rows, ransac_plane, statistical_inliers, strided_subset,
-                                              subset_stride, voxel_centroids)
+from scipy.spatial import cKDTree
+
+from skel_extract_ros.core.point_sets import (finite_rows, nearest_within, ransac_plane, statistical_inliers,
+                                              strided_subset, subset_stride, voxel_centroids)
 
 
 def _surface_with_flying_pixels(seed=0, n=5000, flying=60):
@@ -81,3 +83,18 @@ def test_strided_subset_keeps_at_most_the_cap_and_as_many_as_a_stride_allows(cou
     stride = subset_stride(count, 1000)
     assert stride == 1 or len(rows[::stride - 1]) > 1000
     np.testing.assert_array_equal(subset, rows[::stride])
+
+
+@pytest.mark.parametrize('k, radius', [(1, np.inf), (8, 0.05), (8, np.inf), (50, 0.02)])
+def test_nearest_within_is_scipys_query(k, radius):
+    """The same neighbours as scipy's cKDTree, with its conventions: inf and M where fewer
+    than k lie within the radius, and k capped at M (here 40 points)."""
+    rng = np.random.default_rng(5)
+    points, queries = rng.normal(scale=0.1, size=(40, 3)), rng.normal(scale=0.1, size=(300, 3))
+    distances, indices = nearest_within(queries, points, k, radius)
+    K = min(k, len(points))
+    theirs_distances, theirs_indices = cKDTree(points).query(queries, k=K, distance_upper_bound=radius)
+    assert distances.shape == indices.shape == (300, K) and indices.dtype == np.int64
+    np.testing.assert_allclose(distances, theirs_distances.reshape(300, K))
+    np.testing.assert_array_equal(indices, theirs_indices.reshape(300, K))
+    assert radius == np.inf or (indices == len(points)).any()

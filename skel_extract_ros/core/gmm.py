@@ -31,7 +31,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from pykdtree.kdtree import KDTree
+
+from .point_sets import nearest_within
 
 
 @dataclass
@@ -63,22 +64,7 @@ def nearest_centroids(observed: np.ndarray, centroids: np.ndarray, n_neighbours:
                       radius: float = np.inf) -> np.ndarray:
     """(N, K) indices of each observation's K nearest centroids within `radius` (m); M where
     there are fewer. observed (N, 3), centroids (M, 3)."""
-    return _query(observed, centroids, n_neighbours, radius)[1]
-
-
-def _query(observed, centroids, n_neighbours, radius):
-    """(distances (N, K) m, inf where none; indices (N, K), M where none)."""
-    M, N = len(centroids), len(observed)
-    K = min(n_neighbours, M)
-    # The k-d tree is over the centroids and rebuilt per call; its query cost does not grow
-    # with sigma, unlike a fixed-radius search that visits every centroid in the ball.
-    # pykdtree, not scipy's cKDTree: the same neighbours (M and inf where none, as scipy)
-    # built and queried in less time, and this runs in every EM iteration. Its OpenMP team
-    # uses every core unless limited; the nodes keep it to one thread (nodes/__init__.py).
-    centroids = np.ascontiguousarray(centroids, dtype=np.float64)
-    observed = np.ascontiguousarray(observed, dtype=np.float64)
-    distances, idx = KDTree(centroids).query(observed, k=K, distance_upper_bound=radius)
-    return distances.reshape(N, K), idx.reshape(N, K).astype(np.int64)
+    return nearest_within(observed, centroids, n_neighbours, radius)[1]
 
 
 def gmm_posteriors(observed: np.ndarray, centroids: np.ndarray, sigma2: float, omega: float,
@@ -93,7 +79,9 @@ def gmm_posteriors(observed: np.ndarray, centroids: np.ndarray, sigma2: float, o
     M, N = len(centroids), len(observed)
     radius = truncation_sigmas * np.sqrt(sigma2)
     if candidates is None:   # a fresh query already gives the distances
-        distances, idx = _query(observed, centroids, n_neighbours, radius)
+        # a k-d tree over the centroids, rebuilt per call: its query cost does not grow with
+        # sigma, unlike a fixed-radius search that visits every centroid in the ball
+        distances, idx = nearest_within(observed, centroids, n_neighbours, radius)
         found = idx < M
         d2 = np.where(found, distances, 0.0) ** 2
     else:

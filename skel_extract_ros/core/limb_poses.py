@@ -36,12 +36,11 @@ scored by the data", on the live path; measured in bench/README.md, the live fit
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from .bone_rotations import children_of
 from .confidence import MIN_SAMPLES, half_residual
 from .growth import farthest_poses
-from .point_sets import finite_rows, strided_subset, subset_stride
+from .point_sets import finite_rows, nearest_within, strided_subset, subset_stride
 from .skeleton_model import SkeletonModel
 
 # the truncation of the chamfer distance in units of the skeleton's noise scale
@@ -86,8 +85,6 @@ class LimbPoses:
         rest = np.asarray(model.rest_points, dtype=np.float64)
         stride = subset_stride(len(rest), MODEL_POINTS)
         self._rest, self._labels = rest[::stride], np.asarray(model.labels, dtype=np.int64)[::stride]
-        # a neighbour query's "none within the cap" index is the subset's length: no bone
-        self._neighbour_labels = np.append(self._labels, -1)
         self._parents = parents
         self._cap = CAP_MULTIPLE * half_residual(model.noise_m)
         children = children_of(parents)
@@ -95,6 +92,7 @@ class LimbPoses:
                       if parents[b] >= 0 and (parents[parents[b]] < 0 or len(children[parents[b]]) > 1)]
         self.reposed = 0
         self._bones, self._points, self._local, self._relative, self._reach = {}, {}, {}, {}, {}
+        self._in_limb = {}
         self._rest_joints = rest_joints = np.asarray(model.rest_joints, dtype=np.float64)
         for limb in self.limbs:
             bones = _subtree(limb, children)
@@ -113,6 +111,9 @@ class LimbPoses:
             posed = np.einsum('knij,nj->kni', rotations[:, local], self._rest[points]) + translations[:, local]
             keep = farthest_poses(posed.reshape(len(posed), -1), MAX_POSES)
             self._bones[limb], self._points[limb], self._local[limb] = bones, points, local
+            # by a neighbour query's index: the model subset's points on the limb (the index
+            # "none within the cap", the subset's length, is on no bone)
+            self._in_limb[limb] = np.append(np.isin(self._labels, bones), False)
             self._relative[limb] = (rotations[keep], translations[keep])
 
     def repose(self, rotations: np.ndarray, translations: np.ndarray, observed: np.ndarray) -> tuple:
@@ -134,11 +135,10 @@ class LimbPoses:
         distance, nearest = self._nearest(rotations, translations, observed)
         if np.count_nonzero(distance[:, 0] >= cap) < MIN_SAMPLES:
             return rotations, translations, moved       # the start explains the frame: nothing to re-pose
-        observed_tree = cKDTree(observed)
         for limb, (relative_rotations, relative_translations) in self._relative.items():
             bones, points, local = self._bones[limb], self._points[limb], self._local[limb]
             # each observation's distance to the start without this limb (cap: none within it)
-            outside = np.isfinite(distance) & ~np.isin(self._neighbour_labels[nearest], bones)
+            outside = np.isfinite(distance) & ~self._in_limb[limb][nearest]
             rest_distance = np.where(outside.any(axis=1),
                                      distance[np.arange(len(observed)), np.argmax(outside, axis=1)], cap)
             # the observations nothing else explains, within the limb's reach of its joint
@@ -155,11 +155,13 @@ class LimbPoses:
             candidates = np.concatenate([start[None], np.einsum('knij,nj->kni', hypotheses_r[:, local],
                                                                 self._rest[points]) + hypotheses_t[:, local]])
             count, n = candidates.shape[:2]                                    # (1 + K, n, 3)
-            to_data = np.minimum(observed_tree.query(candidates.reshape(-1, 3), distance_upper_bound=cap)[0], cap)
+            to_data = np.minimum(nearest_within(candidates.reshape(-1, 3), observed, 1, cap)[0][:, 0], cap)
             # (1 + K, U): each unexplained observation's squared distance to each candidate's
-            # nearest point (dense: both sets are small strided subsets)
-            gaps = unexplained[None, :, None, :] - candidates[:, None, :, :]
-            to_model = np.minimum(np.min(np.einsum('kunc,kunc->kun', gaps, gaps), axis=2), cap ** 2)
+            # nearest point, dense (both sets are small strided subsets) and expanded as
+            # |c|^2 + |u|^2 - 2 c.u, a matrix product instead of (1 + K, n, U, 3) differences
+            squared = (np.einsum('knd,knd->kn', candidates, candidates)[:, :, None]
+                       + np.einsum('ud,ud->u', unexplained, unexplained) - 2.0 * candidates @ unexplained.T)
+            to_model = np.minimum(np.maximum(np.min(squared, axis=1), 0.0), cap ** 2)
             scores = np.mean(to_data.reshape(count, n) ** 2, axis=1) + np.mean(to_model, axis=1)
             best = int(np.argmin(scores))
             if best == 0 or scores[best] >= MARGIN * scores[0]:
@@ -175,9 +177,7 @@ class LimbPoses:
         """(N, k) distances (inf past the cap) and indices (len(model subset) where none) of
         each observation's nearest posed model points."""
         posed = np.einsum('nij,nj->ni', rotations[self._labels], self._rest) + translations[self._labels]
-        k = min(NEIGHBOURS, len(posed))
-        distance, nearest = cKDTree(posed).query(observed, k=k, distance_upper_bound=self._cap)
-        return distance.reshape(len(observed), k), nearest.reshape(len(observed), k)
+        return nearest_within(observed, posed, NEIGHBOURS, self._cap)
 
 
 def _breadth_first(parents: np.ndarray, children: list) -> list:

@@ -1,6 +1,6 @@
 """The point-set operations of the per-frame path, in numpy / scipy: voxel-grid centroids,
-statistical outlier removal, a RANSAC plane, and the strided subsets the per-frame steps
-sample their points with.
+statistical outlier removal, a RANSAC plane, the k nearest neighbours within a radius,
+and the strided subsets the per-frame steps sample their points with.
 
 Open3D does each of them well, but importing it costs a process about 170 MB resident,
 and the registration node needs these three for every camera frame, for as long as it
@@ -36,6 +36,22 @@ def subset_stride(count: int, at_most: int) -> int:
 def strided_subset(rows: np.ndarray, at_most: int) -> np.ndarray:
     """rows (N, ...) taken at `subset_stride`: at most `at_most` of them, evenly spread."""
     return rows[::subset_stride(len(rows), at_most)]
+
+
+def nearest_within(queries: np.ndarray, points: np.ndarray, k: int, radius: float = np.inf) -> tuple:
+    """Each query's k nearest points within `radius` (m): (distances (N, k') m, inf where
+    none; indices (N, k') int64, M where none), k' = min(k, M), for queries (N, 3) and points
+    (M, 3). The k-d tree is over `points` and built per call.
+
+    pykdtree, not scipy's cKDTree: the same neighbours (M and inf where none, as scipy)
+    built and queried in less time, and this runs in every EM iteration and every live
+    frame. Its OpenMP team uses every core unless limited; the nodes keep it to one thread
+    (nodes/__init__.py)."""
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    queries = np.ascontiguousarray(queries, dtype=np.float64)
+    count, K = len(queries), min(int(k), len(points))
+    distances, indices = KDTree(points).query(queries, k=K, distance_upper_bound=radius)
+    return distances.reshape(count, K), indices.reshape(count, K).astype(np.int64)
 
 
 def median_spacing(points: np.ndarray) -> float:
