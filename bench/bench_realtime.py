@@ -98,7 +98,8 @@ def replay_row(bag: Path, out: Path, loop: int, params: Path | None, bounce: boo
     return {'first_s': float(found['first_s'][1]),
             'latency_ms': (int(found['latency'][1]), int(found['latency'][2])),
             'joints_hz': float(found['tracking'][4]), 'camera_hz': float(found['tracking'][5]),
-            'from_pass': scores['from_pass'], 'registered_later': scores['registration'][1], 'registration_cm': scores['registration'][3],
+            'from_pass': scores['from_pass'], 'registered_later': scores['registration'][1],
+            'registration_cm': scores['registration'][3],
             'nearest_cm': scores['nearest_cm'], 'live_fits': scores['live_fits'],
             'later': None if scores['later'] is None else scores['later'][1]}
 

@@ -125,6 +125,8 @@ def first_full_pass(first_stamp: float, start_stamp: float, pass_s: float) -> in
     loop starting at `start_stamp` (s), each pass `pass_s` long."""
     # a hundredth of a pass: the stamps of a pass's first frame and of the joints answering
     # it are the same number written by two programs
+    if not np.isfinite(first_stamp):
+        return 0
     return max(0, int(np.ceil((first_stamp - start_stamp) / pass_s - 0.01)))
 
 
@@ -132,9 +134,10 @@ def score(bag: Path, out: Path, from_pass: int | None = None, bounce: bool = Fal
     """The live joints and registered frames of a replay in `out` against the bag's ground
     truth, repeated for each pass: {'all' / 'later': JointReport or None (every frame with
     joints / from pass `from_pass` on; None: the first pass that starts after the newest
-    skeleton's first live joints, read_recording's), 'from_pass': that pass, 'nearest_cm': (median, p95) of each
-    live joint's distance to its nearest true joint, 'registration': (frames, frames from
-    the pass, mean cm, mean cm from the pass), 'live_fits': read_recording's counts or None}."""
+    skeleton's first live joints, read_recording's), 'from_pass': that pass, 'nearest_cm':
+    (median, p95) of each live joint's distance to its nearest true joint, 'registration':
+    (frames, frames from the pass, mean cm, mean cm from the pass), 'live_fits':
+    read_recording's counts or None}."""
     pred, fits, live_from = read_recording(out / 'output.mcap')
     gt, pass_s = looped(GroundTruth.load(bag / 'gt.npz'), float(pred.stamps.max()), bounce)
     if from_pass is None:
@@ -168,7 +171,8 @@ def main(argv=None) -> int:
     parser.add_argument('bag', type=Path)
     parser.add_argument('out', type=Path)
     parser.add_argument('--from-pass', type=int, default=None,
-                        help='score from this pass of the loop on (default: the first after the first live joints)')
+                        help="score from this pass of the loop on (default: the first that starts after the newest "
+                             "skeleton's first live joints)")
     parser.add_argument('--bounce', action='store_true', help='the replay ran with --bounce')
     args = parser.parse_args(argv)
     result = score(args.bag, args.out, args.from_pass, args.bounce)

@@ -232,3 +232,20 @@ def test_score_realtime_scores_from_the_first_pass_the_live_joints_cover_whole()
     assert first_full_pass(100.0 + 2 * pass_s + 0.033, 100.0, pass_s) == 3
     assert first_full_pass(100.0 + 8.9, 100.0, pass_s) == 3
     assert first_full_pass(99.0, 100.0, pass_s) == 0
+
+
+def test_score_realtime_finds_the_first_live_frame_past_the_windows_joints():
+    """When a skeleton is learned the node publishes its window's joints at once, stamped
+    with frames seconds old; the live joints then follow each frame a latency after its
+    stamp. The first live frame is the learning's log time less that latency, not the
+    oldest stamp published."""
+    sys.path.insert(0, str(REPO / 'bench'))
+    from score_realtime import live_start_stamp
+    learned_at, latency = 110.0, 0.05
+    window = np.arange(100.0, 102.0, 1 / 30)                   # the window's frames, published at 110.0
+    live = np.arange(110.0 - latency, 120.0, 1 / 30)          # each answered `latency` after its stamp
+    stamps = np.concatenate([window, live])
+    logged = np.concatenate([np.full(len(window), learned_at), live + latency])
+    assert live_start_stamp(stamps, logged, learned_at) == pytest.approx(110.0 - latency, abs=1e-6)
+    # nothing logged since the learning: the oldest stamp
+    assert live_start_stamp(window, np.full(len(window), 105.0), learned_at) == window[0]
