@@ -666,6 +666,8 @@ def test_joint_estimation_node_answers_the_camera_frames_its_live_fit_had_no_tim
     positions = np.array([[[p.position.x, p.position.y, p.position.z] for p in m.poses] for m in joints[13:]])
     trust = np.array([json.loads(m.data)['confidence'] for m in confidence[13:24]])
     is_fitted = np.isin(stamps, fitted)
+    # said so in each frame's confidence message
+    assert [json.loads(m.data)['interpolated'] for m in confidence[13:24]] == (~is_fitted).tolist()
     assert is_fitted[0] and is_fitted[-1] and not is_fitted.all()
     for k in np.flatnonzero(~is_fitted):
         before, after = np.flatnonzero(is_fitted[:k])[-1], k + np.flatnonzero(is_fitted[k:])[0]

@@ -374,7 +374,8 @@ class JointStages:
         self.live_ms.append(1000.0 * (time.perf_counter() - started))
         current = (stamp, header, positions, np.array(camera.pose[0]), np.array(camera.confidence))
         for unanswered_stamp in unanswered:
-            self._publish_joints(described, *interpolated_frame(previous, current, unanswered_stamp))
+            self._publish_joints(described, *interpolated_frame(previous, current, unanswered_stamp),
+                                 interpolated=True)
         self.live_fits['interpolated'] += len(unanswered)
         with self._lock:
             if self.last_published == stamp:     # no rest pose came meanwhile
@@ -393,10 +394,11 @@ class JointStages:
         self.log.warn('live_failed', f'live joints for the camera frame at {stamp_ns(item[0]) * 1e-9:.3f} s '
                                      f'failed: {type(error).__name__}: {error}')
 
-    def _publish_joints(self, described, header, positions, hints, confidence) -> None:
-        """positions (J, 3) m; hints (B, 3, 3) the fit's bone rotations; confidence (J,)."""
+    def _publish_joints(self, described, header, positions, hints, confidence, interpolated=False) -> None:
+        """positions (J, 3) m; hints (B, 3, 3) the fit's bone rotations; confidence (J,);
+        interpolated: a frame the live fit had no time for (`interpolated_frame`)."""
         self.joints_rate.tick()
-        self.output.publish(described, header, positions, hints, confidence)
+        self.output.publish(described, header, positions, hints, confidence, interpolated)
 
 
 def interpolated_frame(before: tuple, after: tuple, stamp: int) -> tuple:

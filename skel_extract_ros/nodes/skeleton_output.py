@@ -110,9 +110,11 @@ class SkeletonOutput:
         return described
 
     def publish(self, skeleton: DescribedSkeleton, header, positions: np.ndarray, hints: np.ndarray,
-                confidence: np.ndarray) -> None:
+                confidence: np.ndarray, interpolated: bool = False) -> None:
         """One frame's joints: positions (J, 3) m, hints (J, 3, 3) the fit's bone rotations
-        (the twist, see the module docstring; NaN rows: none), confidence (J,) in [0, 1]."""
+        (the twist, see the module docstring; NaN rows: none), confidence (J,) in [0, 1];
+        interpolated: a camera frame the live fit had no time for, its joints between the
+        fitted frames around it (said in its skeleton/confidence message)."""
         model = skeleton.model
         positions = np.asarray(positions, dtype=np.float64)
         rotations = np.broadcast_to(np.eye(3), (len(positions), 3, 3)).copy()
@@ -126,7 +128,8 @@ class SkeletonOutput:
                                                        velocities))
         self.confidence_pub.publish(String(data=json.dumps(
             {'stamp_ns': stamp, 'frame_id': header.frame_id, 'version': skeleton.version,
-             'joint_names': model.joint_names, 'confidence': np.round(confidence, 4).tolist()})))
+             'joint_names': model.joint_names, 'confidence': np.round(confidence, 4).tolist(),
+             'interpolated': bool(interpolated)})))
         # markers only for a reader (RViz): building and serialising them is ~0.9 ms of every
         # live frame, and a volatile topic drops what it sends unmatched anyway
         if self.markers_pub.get_subscription_count() > 0:
