@@ -29,6 +29,11 @@ def stamp_ns(header) -> int:
     return stamp_to_ns(header.stamp)
 
 
+def set_stamp_ns(header, stamp: int) -> None:
+    """Set a header's stamp to `stamp` integer nanoseconds (stamp_ns's inverse), in place."""
+    header.stamp.sec, header.stamp.nanosec = divmod(int(stamp), 1_000_000_000)
+
+
 def cloud_message(points: np.ndarray, header: Header, float64: bool = False) -> PointCloud2:
     """(N, 3) points as an unorganized PointCloud2 with `header`; float64 fields when exact
     values matter (the rest points, which every downstream step starts from)."""

@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 
-from ..codecs.messages import stamp_ns
+from ..codecs.messages import set_stamp_ns, stamp_ns
 from ..core.articulated import blend, dense_weights
 from ..core.confidence import fit_noise
 from ..core.joints import JointEstimation
@@ -412,7 +412,7 @@ def interpolated_frame(before: tuple, after: tuple, stamp: int) -> tuple:
                                                              confidence_1) = before, after
     share = (stamp - stamp_0) / max(stamp_1 - stamp_0, 1)
     header = copy.deepcopy(header_1)
-    header.stamp.sec, header.stamp.nanosec = divmod(int(stamp), 1_000_000_000)
+    set_stamp_ns(header, stamp)
     positions = (1.0 - share) * np.asarray(positions_0) + share * np.asarray(positions_1)
     hints = hints_0 if share < 0.5 else hints_1
     return header, positions, hints, np.minimum(confidence_0, confidence_1)

@@ -221,7 +221,7 @@ class _Replay:
         from rclpy.serialization import deserialize_message, serialize_message
 
         from ...codecs.bag import _raw_messages
-        from ...codecs.messages import stamp_ns
+        from ...codecs.messages import set_stamp_ns, stamp_ns
         received, n_frames = self.received, self.n_frames
         first_stamp, previous, pass_ns, mirror_ns = None, None, 0, 0
 
@@ -231,7 +231,7 @@ class _Replay:
             original = stamp_ns(msg.header)
             stamp = looped_stamp(original, pass_index, pass_ns, mirror_ns, self.bounce)
             if stamp != original:
-                msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp, 10**9)
+                set_stamp_ns(msg.header, stamp)
                 raw = serialize_message(msg)
             return original, stamp, bytes(raw)
         if self.held is not None:
