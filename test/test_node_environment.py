@@ -294,3 +294,36 @@ def test_a_node_process_ends_without_the_interpreters_finalisation(ending, code)
     assert done.returncode == code, done.stderr
     assert done.stdout.split() == ['spun']            # flushed; neither returned nor finalised
     assert ('must be > 0' in done.stderr) == (ending == 'parameters')
+
+
+
+IMPORTS_PROBE = '''
+import importlib, sys
+import numpy as np
+for module in sys.argv[1:]:
+    if module == 'pair':
+        from skel_extract_ros.core.matching import gated_assignment
+        gated_assignment(np.eye(2), 1.0)
+    else:
+        importlib.import_module(module)
+print(*sorted({m.split('.')[0] if m.startswith('rosbags') else 'scipy.optimize'
+               for m in sys.modules if m.startswith(('rosbags', 'scipy.optimize'))}))
+'''
+
+
+def _loaded(*steps) -> list:
+    """Of rosbags and scipy.optimize, those loaded in a fresh interpreter after `steps`
+    (modules imported in turn; 'pair': one gated assignment)."""
+    return subprocess.run([sys.executable, '-c', IMPORTS_PROBE, *steps], capture_output=True, text=True,
+                          check=True).stdout.split()
+
+
+def test_node_processes_leave_the_bag_codec_and_the_assignment_solver_unloaded():
+    """The nodes read stamps but no bag, and the joint node and the registration node's camera
+    stage pair nothing: importing the nodes loads neither rosbags nor scipy.optimize (16 MB
+    of each such process); reading a bag and pairing do."""
+    nodes = ['skel_extract_ros.nodes.joint_estimation_node', 'skel_extract_ros.nodes.accumulator_node',
+             'skel_extract_ros.nodes.registration_node', 'skel_extract_ros.nodes.registration_process']
+    assert _loaded(*nodes) == []
+    assert _loaded(*nodes, 'pair') == ['scipy.optimize']
+    assert _loaded('skel_extract_ros.codecs.bag') == ['rosbags']

@@ -17,6 +17,7 @@ from rosbags.typesys import Stores, get_typestore
 
 from .depth_image import DepthDecodeError, depth_to_cloud, encode_depth
 from .pointcloud import CloudDecodeError, decode_xyz, pointcloud2
+from .stamps import stamp_to_ns
 
 POINTCLOUD2 = 'sensor_msgs/msg/PointCloud2'
 IMAGE = 'sensor_msgs/msg/Image'
@@ -56,10 +57,6 @@ class CloudFrame:
     @property
     def stamp(self) -> float:
         return self.stamp_ns * 1e-9
-
-
-def stamp_to_ns(stamp) -> int:
-    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
 def _make_pointcloud2(points: np.ndarray, stamp_ns: int, frame_id: str, point_step: int = 16):

@@ -15,10 +15,10 @@ from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import ColorRGBA, Header
 from visualization_msgs.msg import Marker, MarkerArray
 
-from .bag import stamp_to_ns
 from ..core.skeleton_model import SkeletonModel, pivot_document
 from ..core.structure import SkeletalStructure
 from .pointcloud import pointcloud2
+from .stamps import stamp_to_ns
 
 # 2: the bones' rigid fits at the key frames (rotations, translations) added
 STRUCTURE_VERSION = 2

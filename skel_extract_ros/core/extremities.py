@@ -13,10 +13,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
+
+from .matching import min_cost_assignment
 
 
 @dataclass
@@ -159,7 +160,7 @@ def match_extremities(model: Extremities, model_points: np.ndarray, observed: Ex
     if not allowed.any():
         return []
     cost = np.where(allowed, distance, 1e6 + distance)
-    rows, columns = linear_sum_assignment(cost)
+    rows, columns = min_cost_assignment(cost)
     pairs = []
     for k, l in zip(rows, columns):   # a few ends
         others = np.delete(distance[:, l], k)

@@ -1,8 +1,19 @@
-"""One assignment rule for pairing two sets within a gate (joint ids across updates, scoring)."""
+"""One assignment rule for pairing two sets within a gate (joint ids across updates, scoring),
+and the Hungarian assignment it and the limbs' ends' matching share."""
 from __future__ import annotations
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
+
+
+def min_cost_assignment(cost: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rows and columns (P,) int of the assignment of least total cost (R, C), P = min(R, C):
+    scipy's linear_sum_assignment.
+
+    scipy.optimize is imported on the first call, not with this module: it holds about 10 MB
+    in every process that loads it, and two of the nodes' processes (the joint node, the
+    registration node's camera stage) import the method's modules but never pair anything."""
+    from scipy.optimize import linear_sum_assignment
+    return linear_sum_assignment(cost)
 
 
 def gated_assignment(cost: np.ndarray, gate: float) -> tuple[np.ndarray, np.ndarray]:
@@ -20,6 +31,6 @@ def gated_assignment(cost: np.ndarray, gate: float) -> tuple[np.ndarray, np.ndar
         return np.zeros(0, int), np.zeros(0, int)
     within = np.isfinite(cost) & (cost <= gate)
     beyond_price = (min(cost.shape) + 1) * max(float(gate), np.finfo(float).tiny)
-    rows, cols = linear_sum_assignment(np.where(within, cost, beyond_price))
+    rows, cols = min_cost_assignment(np.where(within, cost, beyond_price))
     keep = within[rows, cols]
     return rows[keep], cols[keep]
