@@ -188,6 +188,43 @@ def test_lossless_live_latency_counts_the_frames_registered_once_the_skeleton_ex
     assert 'live_joints_ms' not in _latencies(received, realtime=False)
 
 
+def test_replays_skeleton_json_marks_the_frames_the_nodes_interpolated(tmp_path):
+    """The confidence message's `interpolated` flag, as the recorder receives it, reaches the
+    replay's skeleton.json: the frame the live fit had no time for says so, the fitted
+    frames carry no mark."""
+    import threading
+
+    from rclpy.serialization import deserialize_message, serialize_message
+    from std_msgs.msg import String
+    from skel_extract_ros.app.replay.recording import Received, _Recorder
+    from skel_extract_ros.app.replay.summary import _write_files
+    from two_bone import two_bone_sequence
+    rest, registered, labels, _, joints = two_bone_sequence(n_frames=3)
+    names, stamps = ['joint_0', 'joint_1'], [10, 20, 30]
+    received = Received(rest=rest, frame_id='camera')
+    recorder = object.__new__(_Recorder)        # its message handler, without a ROS node
+    recorder.received, recorder.condition = received, threading.Condition()
+    recorder.writer = type('Writer', (), {'write': lambda *args: None})()
+    recorder.connections, recorder._deserialize = {'skeleton/confidence': None}, deserialize_message
+    for stamp, flag in zip(stamps, (False, True, False)):
+        document = {'stamp_ns': stamp, 'frame_id': 'camera', 'version': 1, 'joint_names': names,
+                    'confidence': [0.9, 0.8], 'interpolated': flag}
+        recorder._on_message('skeleton/confidence', 'std_msgs/msg/String',
+                             serialize_message(String(data=json.dumps(document))))
+    assert received.interpolated == {20}
+    received.joints = {stamp: np.stack([joints[k], joints[k] + 0.3]) for k, stamp in enumerate(stamps)}
+    received.registered = {10: registered[0], 30: registered[2]}
+    window = {'window_stamps_ns': [10, 30]}
+    received.descriptions = [{**window, 'joint_names': names, 'parents': [-1, 0], 'frame_id': 'camera',
+                              'rest_positions': [[0.0, 0.0, 0.0], [0.3, 0.0, 0.0]]}]
+    received.structures = [{**window, 'labels': labels.tolist()}]
+    received.description, received.structure = received.descriptions[0], received.structures[0]
+    _write_files(received, tmp_path)
+    frames = json.loads((tmp_path / 'skeleton.json').read_text())['frames']
+    assert [frame.get('interpolated') for frame in frames] == [None, True, None]
+    assert [frame['confidence'] for frame in frames] == [[0.9, 0.8]] * 3
+
+
 def test_bounce_refuses_a_bag_larger_than_half_the_available_memory(sample_bag, monkeypatch):
     """--bounce holds the bag's messages; one that would not fit says so before any node starts."""
     from skel_extract_ros.app import replay as replay_module

@@ -31,10 +31,12 @@ def write_registered(out: Path, points: np.ndarray, stamps: np.ndarray, status: 
 
 def write_skeleton(out: Path, joint_names: list, parents, rest_joints, frame_id: str, stamps: np.ndarray,
                    positions: np.ndarray, confidence, rest_points: np.ndarray, labels: np.ndarray,
-                   registered: dict, observed: dict, scene: dict | None = None, pivot: dict | None = None) -> None:
+                   registered: dict, observed: dict, scene: dict | None = None, pivot: dict | None = None,
+                   interpolated=None) -> None:
     """skeleton.json for every frame with joints (stamps (F,) s, positions (F, J, 3) m,
     confidence (F, J) or a list with None where unknown, or None; pivot: the joints' pivot
-    evidence, core.skeleton_model.pivot_document), and skeleton.bvh and
+    evidence, core.skeleton_model.pivot_document; interpolated (F,) bool or None: the
+    frames whose joints the live path interpolated), and skeleton.bvh and
     skeleton.png for those of them with registered points: registered / observed / scene
     map a frame's row in stamps to its registered (M, 3), observed (N, 3) and whole-view
     (K, 3) points; rest_points (M, 3) and labels (M,) the model's."""
@@ -42,7 +44,8 @@ def write_skeleton(out: Path, joint_names: list, parents, rest_joints, frame_id:
     from ..core.skeleton_model import skeleton_document
     from .visualization import draw_skeleton_png
 
-    document = skeleton_document(joint_names, parents, rest_joints, stamps, positions, frame_id, confidence, pivot)
+    document = skeleton_document(joint_names, parents, rest_joints, stamps, positions, frame_id, confidence, pivot,
+                                 interpolated)
     (out / 'skeleton.json').write_text(json.dumps(document))
     rows = [row for row in range(len(stamps)) if row in registered]
     with_points = np.stack([registered[row] for row in rows])

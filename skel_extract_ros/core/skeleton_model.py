@@ -71,12 +71,14 @@ def pivot_document(pivot: PivotEvidence | None) -> dict | None:
 
 
 def skeleton_document(joint_names, parents, rest_positions, stamps, positions, frame_id: str,
-                      confidence=None, pivot: dict | None = None) -> dict:
+                      confidence=None, pivot: dict | None = None, interpolated=None) -> dict:
     """skeleton.json: names (J,), parents (J,), rest_positions (J, 3) m, stamps (F,) s,
     positions (F, J, 3) m in the input frame (non-finite values become null), per frame
     the joints' confidence (F, J) in [0, 1] (core.confidence) when given (a frame whose
-    confidence is unknown: None, left out), and the joints' pivot evidence (pivot_document;
-    None: null)."""
+    confidence is unknown: None, left out), the joints' pivot evidence (pivot_document;
+    None: null), and interpolated (F,) bool or None: the frames whose joints the live path
+    interpolated between fitted frames (the nodes' live camera frames it had no time for)
+    are marked `"interpolated": true`; the others carry no mark."""
     positions = np.asarray(positions, dtype=np.float64)
     frames = [{'stamp': float(stamp),
                'positions': [[None if not np.isfinite(v) else round(float(v), 6) for v in joint]
@@ -85,6 +87,9 @@ def skeleton_document(joint_names, parents, rest_positions, stamps, positions, f
     for frame, values in zip(frames, confidence if confidence is not None else []):
         if values is not None:
             frame['confidence'] = [round(float(c), 4) for c in values]
+    for frame, flag in zip(frames, interpolated if interpolated is not None else []):
+        if flag:
+            frame['interpolated'] = True
     return {
         'frame_id': frame_id,
         'joint_names': list(joint_names),

@@ -40,6 +40,7 @@ class Received:
     joints: dict = field(default_factory=dict)            # stamp -> (J, 3), last received
     joint_names: dict = field(default_factory=dict)       # stamp -> its joints' names (skeleton/confidence)
     confidence: dict = field(default_factory=dict)        # stamp -> (J,) its joints' confidence
+    interpolated: set = field(default_factory=set)        # stamps whose joints were interpolated
     structures: list = field(default_factory=list)        # every skeleton/structure, in order
     descriptions: list = field(default_factory=list)      # every skeleton/description, in order
     joints_at: dict = field(default_factory=dict)
@@ -92,7 +93,7 @@ class _Recorder:
         from ...codecs.pointcloud import decode_xyz
         now = time.perf_counter()
         self.writer.write(self.connections[topic], time.time_ns(), raw)
-        # markers, trajectory and confidence are recorded only: the files do not need them
+        # markers and trajectory are recorded only: the files do not need them
         msg = None if topic in RECORDED_ONLY else self._deserialize(raw, _ros_type(type_name))
         r = self.received
         with self.condition:
@@ -122,6 +123,8 @@ class _Recorder:
                 document = json.loads(msg.data)
                 r.joint_names[int(document['stamp_ns'])] = document['joint_names']
                 r.confidence[int(document['stamp_ns'])] = document['confidence']
+                if document.get('interpolated'):
+                    r.interpolated.add(int(document['stamp_ns']))
             elif topic == '/diagnostics':
                 for status in msg.status:
                     if status.name.endswith('/accumulator_node'):

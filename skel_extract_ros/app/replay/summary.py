@@ -34,7 +34,7 @@ def _write_files(received: Received, out: Path) -> dict:
                    received.rest, np.asarray(structure['labels']),
                    registered={row: received.registered[s] for row, s in enumerate(answered) if s in received.registered},
                    observed={row: received.filtered[s] for row, s in enumerate(answered) if s in received.filtered},
-                   pivot=description.get('pivot'))
+                   pivot=description.get('pivot'), interpolated=[s in received.interpolated for s in answered])
     return {'n_frames': len(stamps_ns), 'n_joints': len(description['joint_names']),
             'n_frames_with_joints': len(answered)}
 
