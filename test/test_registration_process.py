@@ -28,12 +28,23 @@ def child():
 
 
 def test_the_child_registers_exactly_as_the_node_would(sequence, child):
+    """The held frames' two chains (backward from the rest pose's frame, forward from it),
+    registered at once on the child's threads, give what one registration after the other
+    gives in the node's process, and the frames after go on from the forward chain's last."""
     rest, frames = sequence
     params = RegistrationParams()
+    backward, forward = [(frames[2], None), (frames[1], None), (frames[0], None)], [(frames[3], None)]
+    earlier = NonRigidRegistration(rest, params)
     here = NonRigidRegistration(rest, params)
-    child.install(NonRigidRegistration(rest, params))
+    expected = [[earlier.register_frame(observed) for observed, _ in backward], [here.register_frame(frames[3])]]
+    outcomes = child.register_chains(NonRigidRegistration(rest, params), [backward, forward])
     assert child.pid != os.getpid()
-    for observed in frames:
+    assert [len(chain) for chain in outcomes] == [3, 1]
+    for chain, expected_chain in zip(outcomes, expected):
+        for (result, seconds), wanted in zip(chain, expected_chain):
+            assert result.status == wanted.status and seconds > 0
+            np.testing.assert_array_equal(result.points, wanted.points)
+    for observed in frames[4:]:
         expected, result = here.register_frame(observed), child.register_frame(observed)
         assert result.status == expected.status
         # the child keeps its state from frame to frame: each frame starts from the last one
@@ -57,7 +68,7 @@ def test_with_sched_idle_every_thread_of_the_child_enters_the_idle_class_and_a_n
     rest, frames = sequence
     child = RegistrationProcess(niceness=5, sched_idle=True)
     try:
-        child.install(NonRigidRegistration(rest, RegistrationParams()))
+        child.register_chains(NonRigidRegistration(rest, RegistrationParams()), [])
         assert os.sched_getscheduler(child.pid) == os.SCHED_OTHER and not child.in_idle_class
         child.make_nicer()
         tasks = os.listdir(f'/proc/{child.pid}/task')
@@ -73,14 +84,14 @@ def test_with_sched_idle_every_thread_of_the_child_enters_the_idle_class_and_a_n
 
 def test_a_killed_child_is_reported_and_restart_gives_a_working_one(sequence, child):
     rest, frames = sequence
-    child.install(NonRigidRegistration(rest, RegistrationParams()))
+    child.register_chains(NonRigidRegistration(rest, RegistrationParams()), [])
     os.kill(child.pid, signal.SIGKILL)
     with pytest.raises(ChildProcessDied):
         child.register_frame(frames[0])
     child.restart()
-    with pytest.raises(RuntimeError, match='no registration installed'):
+    with pytest.raises(RuntimeError, match='no registration in the registration process'):
         child.register_frame(frames[0])
-    child.install(NonRigidRegistration(rest, RegistrationParams()))
+    child.register_chains(NonRigidRegistration(rest, RegistrationParams()), [])
     assert child.register_frame(frames[0]).status == 'ok'
 
 
@@ -89,7 +100,7 @@ def test_close_ends_a_child_that_gets_no_cpu_and_the_call_waiting_on_it_fails(se
     machine) is killed once close's timeout has passed, and the call waiting on it raises
     ChildProcessDied instead of waiting for ever."""
     rest, frames = sequence
-    child.install(NonRigidRegistration(rest, RegistrationParams()))
+    child.register_chains(NonRigidRegistration(rest, RegistrationParams()), [])
     os.kill(child.pid, signal.SIGSTOP)
     outcome = []
 
@@ -113,7 +124,7 @@ def test_close_ends_a_child_that_gets_no_cpu_and_the_call_waiting_on_it_fails(se
 
 def test_the_child_loads_neither_rclpy_nor_open3d(sequence, child):
     rest, frames = sequence
-    child.install(NonRigidRegistration(rest, RegistrationParams()))
+    child.register_chains(NonRigidRegistration(rest, RegistrationParams()), [])
     child.register_frame(frames[0])                   # answered: every import is done
     maps = open(f'/proc/{child.pid}/maps').read()
     assert 'numpy' in maps or 'libopenblas' in maps or 'scipy' in maps

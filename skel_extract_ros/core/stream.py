@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .preprocess import PreprocessParams, Preprocessor
-from .registration import NonRigidRegistration, RegistrationParams
+from .registration import NonRigidRegistration, RegistrationParams, register_chains
 from .registration.params import FrameResult
 from .rest_pose import RestPose, RestPoseError, RestPoseParams, spread
 from .segmentation import STATUS_NOBODY, Segmentation, SegmentationParams, SubjectSegmenter
@@ -102,12 +102,14 @@ class InProcessRegistration:
     def __init__(self):
         self.registration = None
 
-    def install(self, registration: NonRigidRegistration) -> None:
-        self.registration = registration
-
     def register_frame(self, observed: np.ndarray, start_points: np.ndarray | None = None,
                        stamp: float | None = None) -> FrameResult:
         return self.registration.register_frame(observed, start_points, stamp)
+
+    def register_chains(self, registration: NonRigidRegistration, chains: list) -> list:
+        """core.registration.register_chains; the frames after go on from the last chain."""
+        outcomes, self.registration = register_chains(registration, chains)
+        return outcomes
 
 
 @dataclass
@@ -148,12 +150,13 @@ class FrameRegistrar:
     through, `choice_frames` consecutive frames are held; the rest pose is built from the
     most spread-out of those the gate lets through (core.rest_pose.spread), and the held
     frames are registered backward from it to the first and forward from it to the last,
-    each from its neighbour, as Alg. 1 registers any frame. Registration then goes on
-    from the last held frame. With choice_frames 1 the first frame the gate lets through
+    each from its neighbour, as Alg. 1 registers any frame, the two chains at once
+    (core.registration.register_chains). Registration then goes on from the last held
+    frame. With choice_frames 1 the first frame the gate lets through
     is the rest pose (the paper). `flush` ends the choice early (a stream that ended or
     paused).
 
-    build_rest_pose(observed, rest_params) -> RestPose and registration (install,
+    build_rest_pose(observed, rest_params) -> RestPose and registration (register_chains,
     register_frame) run where the caller wants them: here by default, in child processes
     in the registration node. on_rest_pose(rest_pose, first, chosen), when given, is called
     as soon as the rest pose is built, before the held frames are registered (first and
@@ -213,11 +216,14 @@ class FrameRegistrar:
         if self.on_rest_pose is not None:
             self.on_rest_pose(rest_pose, held[0].frame, held[chosen].frame)
         steps = [None] * len(held)
-        for order in (range(chosen - 1, -1, -1), range(chosen, len(held))):
-            if len(order):
-                self.registration.install(NonRigidRegistration(rest_pose.points, self.params))
-            for i in order:
-                steps[i] = self._register(held[i].observed, None, held[i].frame, held[i].stamp)
+        # backward to the first held frame and forward to the last: two chains at once
+        orders = [order for order in (range(chosen - 1, -1, -1), range(chosen, len(held))) if len(order)]
+        outcomes = self.registration.register_chains(NonRigidRegistration(rest_pose.points, self.params),
+                                                     [[(held[i].observed, held[i].stamp) for i in order]
+                                                      for order in orders])
+        for order, chain in zip(orders, outcomes):
+            for i, (result, seconds) in zip(order, chain):
+                steps[i] = FrameStep(result.status, result, frame=held[i].frame, seconds_registration=seconds)
         steps[chosen].rest_pose_built, steps[chosen].seconds_rest_pose = True, seconds_rest_pose
         return steps
 

@@ -17,8 +17,9 @@ skel_extract_ros.nodes.registration_process`: it imports numpy, scipy and the co
 only (and nodes/worker.py, which imports only the standard library), reads (call,
 arguments) pickles on stdin and answers (ok, value) pickles on stdout, and ends when its
 stdin closes (the node ended or died). The NonRigidRegistration object
-is built in the node and sent once per rest pose; afterwards only the frame's observed
-points (N, 3) and its FrameResult (~50 kB) cross.
+is built in the node and sent once per rest pose, with the frames held for its choice
+(`register_chains`: their two chains on two threads of the child); afterwards only the
+frame's observed points (N, 3) and its FrameResult (~50 kB) cross.
 
 The rest pose (Open3D's Poisson reconstruction) is built in a child of its own that ends
 with it (`RestPoseProcess`): Open3D costs a process 170 MB resident for as long as it
@@ -40,7 +41,7 @@ import time
 
 import numpy as np
 
-from ..core.registration import FrameResult, NonRigidRegistration
+from ..core.registration import FrameResult, NonRigidRegistration, register_chains
 from ..core.rest_pose import RestPose, RestPoseParams
 from .worker import Worker, lower_priority
 
@@ -174,10 +175,6 @@ class RegistrationProcess:
         except OSError:
             return None
 
-    def install(self, registration: NonRigidRegistration) -> None:
-        """Register the next frames with `registration` (a new rest pose)."""
-        self._child.call('install', registration)
-
     def register_frame(self, observed: np.ndarray, start_points: np.ndarray | None = None,
                        stamp: float | None = None) -> FrameResult:
         """observed: (N, 3) subject points, metres -> the FrameResult of Alg. 1 on it;
@@ -186,9 +183,16 @@ class RegistrationProcess:
                                 None if start_points is None else np.asarray(start_points, dtype=np.float64),
                                 stamp)
 
+    def register_chains(self, registration: NonRigidRegistration, chains: list) -> list:
+        """core.registration.register_chains in the child, on its threads: [[(FrameResult,
+        seconds), ...] per chain]; the frames after go on from the last chain."""
+        return self._child.call('register_chains', registration,
+                                [[(np.ascontiguousarray(observed, dtype=np.float64), stamp) for observed, stamp in chain]
+                                 for chain in chains])
+
     def restart(self) -> None:
         """A new child at the node's priority (after ChildProcessDied, or to learn a new
-        skeleton first); it needs `install` again."""
+        skeleton first); it needs `register_chains` again."""
         self._child.close(timeout=0.0)
         self._start()
 
@@ -271,12 +275,12 @@ def _serve() -> None:
         except EOFError:
             return
         try:
-            if name == 'install':
-                registration, value = args[0], None
-            elif name == 'register_frame':
+            if name == 'register_frame':
                 if registration is None:
-                    raise RuntimeError('no registration installed in the registration process')
+                    raise RuntimeError('no registration in the registration process: register_chains first')
                 value = registration.register_frame(*args)
+            elif name == 'register_chains':
+                value, registration = register_chains(*args)
             elif name == 'rest_pose':
                 value = RestPose.from_points(*args)
             else:

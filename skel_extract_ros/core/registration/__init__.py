@@ -53,13 +53,14 @@ The module per part: `params` (RegistrationParams, FrameResult, the frame status
 `graph_terms` (the deformation graph's precomputed structures and E_smooth, robust or
 quadratic), `m_step` (the exact blocks of the M-step, Eq. 4-6), `visibility` (which model
 points the camera could have seen, and which lie outside the silhouette), `nonrigid`
-(NonRigidRegistration: the EM loop of Alg. 1 over them, recapture, the landmarks).
+(NonRigidRegistration: the EM loop of Alg. 1 over them, recapture, the landmarks;
+`register_chains`: independent chains of frames at once).
 """
 from .graph_terms import GraphTerms
 from .m_step import GraphMStep
-from .nonrigid import NonRigidRegistration
+from .nonrigid import NonRigidRegistration, register_chains
 from .params import M_STEPS, SMOOTHNESS, STATUS_DIVERGED, STATUS_EMPTY, STATUS_OK, FrameResult, RegistrationParams
 from .visibility import ObservedView
 
 __all__ = ['FrameResult', 'GraphMStep', 'GraphTerms', 'M_STEPS', 'NonRigidRegistration', 'ObservedView',
-           'RegistrationParams', 'SMOOTHNESS', 'STATUS_DIVERGED', 'STATUS_EMPTY', 'STATUS_OK']
+           'RegistrationParams', 'SMOOTHNESS', 'STATUS_DIVERGED', 'STATUS_EMPTY', 'STATUS_OK', 'register_chains']

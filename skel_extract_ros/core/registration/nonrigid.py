@@ -2,6 +2,8 @@
 frame by frame, with recapture of lost parts and unseen parts carried along."""
 from __future__ import annotations
 
+import copy
+import time
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -9,6 +11,7 @@ import numpy as np
 from ..deformation_graph import DeformationGraph
 from ..extremities import find_extremities, match_extremities
 from ..gmm import CandidateCache, GMMStatistics, gmm_posteriors
+from ..parallel import parallel_map
 from ..point_sets import finite_rows, median_spacing, voxel_centroids
 from ..recapture import find_recaptures, lost_parts
 from ..rigid import fit_weighted_segments, weighted_rigid_fit
@@ -409,3 +412,32 @@ class NonRigidRegistration(GraphTerms, GraphMStep):
         self.rotations, self.translations, self.points = rotations, translations, points
         return FrameResult(points.copy(), STATUS_OK, float(sigma2), iterations, float(matched_fraction), energies,
                            state.recaptured, len(self._landmarks))
+
+
+def register_chains(registration: NonRigidRegistration, chains: list) -> tuple[list, NonRigidRegistration]:
+    """Several chains of frames, each registered in order by its own copy of `registration`
+    (a NonRigidRegistration of one rest pose, before its first frame), the chains at once on
+    the core's thread pool: [[(FrameResult, seconds), ...] per chain], and the last chain's
+    registration, from which the frames after it go on. chains: lists of (observed (N, 3) m,
+    stamp s or None).
+
+    Why: the frames held for the rest pose's choice are registered backward from the chosen
+    one to the first and forward to the last, two chains that share nothing but the rest
+    pose; on the way to the first skeleton they are all the work, and the time an EM
+    iteration spends in numpy's and pykdtree's calls lets another thread run. Each chain
+    gives exactly the results it gives alone."""
+    if not chains:
+        return [], registration
+    copies = [registration] + [copy.deepcopy(registration) for _ in chains[1:]]
+
+    def run(chain_and_registration):
+        chain, chain_registration = chain_and_registration
+        outcomes = []
+        for observed, stamp in chain:
+            started = time.perf_counter()
+            result = chain_registration.register_frame(observed, None, stamp)
+            outcomes.append((result, time.perf_counter() - started))
+        return outcomes
+    # the first chain (the backward one) on its own copy, the last on `registration` itself
+    pairs = list(zip(chains, copies[1:] + copies[:1]))
+    return parallel_map(run, pairs), pairs[-1][1]
