@@ -26,7 +26,9 @@ from .stream import FrameRegistrar, SubjectFinder, split_layout
 
 @dataclass
 class StepTimes:
-    """Wall-clock seconds spent in each step, and per-frame registration times (s)."""
+    """Wall-clock seconds spent in each step, and per-frame registration times (s); the
+    registration's is the sum of its frames' (the rest pose's two chains run at once, so
+    over their frames it exceeds the wall time)."""
 
     segmentation: float = 0.0
     preprocess: float = 0.0
