@@ -186,9 +186,9 @@ class RegistrationProcess:
     def register_chains(self, registration: NonRigidRegistration, chains: list) -> list:
         """core.registration.register_chains in the child, on its threads: [[(FrameResult,
         seconds), ...] per chain]; the frames after go on from the last chain."""
-        return self._child.call('register_chains', registration,
-                                [[(np.ascontiguousarray(observed, dtype=np.float64), stamp) for observed, stamp in chain]
-                                 for chain in chains])
+        chains = [[(np.ascontiguousarray(observed, dtype=np.float64), stamp) for observed, stamp in chain]
+                  for chain in chains]
+        return self._child.call('register_chains', registration, chains)
 
     def restart(self) -> None:
         """A new child at the node's priority (after ChildProcessDied, or to learn a new
