@@ -80,6 +80,15 @@ FIT_POINTS = 600
 FIT_OBSERVED = 1000
 
 
+def silhouette_view(observed: np.ndarray) -> ObservedView | None:
+    """The ObservedView of a frame's observed points (N, 3) m (non-finite rows left out), or
+    None when they make no silhouette (fewer than two rays, or all along one)."""
+    observed = np.asarray(observed, dtype=np.float64)
+    observed = observed[finite_rows(observed)]
+    view = ObservedView(observed) if len(observed) >= 2 else None
+    return view if view is not None and view.ray_spacing > 0 else None
+
+
 class _BoneBlocks:
     """One frame of a fixed SkeletonModel: its LBS (Eq. 8) and the block update of Eq.
     13-15 (core.articulated.BoneBlocks, with one frame), on a strided subset of its points
@@ -162,24 +171,24 @@ class _BoneBlocks:
         return joint_trajectories(rotations[None], translations[None], self._joints, self._parents)[0]
 
     def confidence(self, rotations: np.ndarray, translations: np.ndarray, points: np.ndarray,
-                   corresponding: bool, observed: np.ndarray | None = None) -> np.ndarray:
+                   corresponding: bool, observed: np.ndarray | None = None,
+                   view: ObservedView | None = None) -> np.ndarray:
         """(J,) per-joint confidence in [0, 1] (core.confidence) of the pose (rotations
         (B, 3, 3), translations (B, 3)) against a frame's points, m: its registered points
         (M, 3), which correspond to the model's (corresponding=True), or its observed subject
         points (N, 3), each matched to the nearest posed model point. observed (N, 3) m: the
         frame's observed subject points, whose silhouette the posed bones must lie in (the
         observed `points` themselves when not corresponding; None with registered points:
-        the residual alone)."""
+        the residual alone); view: their `silhouette_view`, when the caller has it (a frame
+        whose fits are compared builds it once)."""
         posed = self.deform(rotations, translations)
         points = np.asarray(points, dtype=np.float64)
         if not corresponding:
             observed = points
         outside = None
         if observed is not None:
-            observed = np.asarray(observed, dtype=np.float64)
-            observed = observed[finite_rows(observed)]
-            view = ObservedView(observed) if len(observed) >= 2 else None
-            if view is not None and view.ray_spacing > 0:     # a silhouette of more than one ray
+            view = silhouette_view(observed) if view is None else view
+            if view is not None:
                 outside = outside_silhouette(self.n_bones, self._influences, posed, view, self._weights)
         if corresponding:
             squared = np.sum((points[self._subset] - posed) ** 2, axis=1)
@@ -435,6 +444,7 @@ class CameraTracker:
         registered_stamp, rotations, translations = self._registered
         outcome = 'registered'
         confidence = None
+        view = silhouette_view(observed)            # one silhouette for every fit compared
         if registered_stamp != int(stamp):
             start = (rotations, translations)
             if self.limb_poses is not None:
@@ -451,7 +461,7 @@ class CameraTracker:
                     self.chain_skipped += 1
                     continue
                 fitted = tracker.fit(observed)
-                scores = None if tracker.diverged else self.tracker.confidence(*fitted, observed, corresponding=False)
+                scores = None if tracker.diverged else self.tracker.confidence(*fitted, observed, False, view=view)
                 if name == 'chained':
                     self._chain_seconds = time.perf_counter() - started
                 elif self._chain_seconds == 0.0:
@@ -462,7 +472,7 @@ class CameraTracker:
                 outcome = 'lost'
         if confidence is None:
             # the registered pose served: what it explains of this frame
-            confidence = self.tracker.confidence(rotations, translations, observed, corresponding=False)
+            confidence = self.tracker.confidence(rotations, translations, observed, False, view=view)
         if self.chain is not None and outcome != 'chained':
             # the next frame's second start is the pose served now (its velocity unknown)
             self.chain.seed(rotations, translations)
