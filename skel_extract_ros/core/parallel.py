@@ -1,8 +1,11 @@
 """The core's one way to use several cores: a thread pool shared by the whole process.
 
-numpy's reductions and scipy's k-d tree queries release the GIL, so independent frames
-(Alg. 2's E-step) run in parallel on threads. One pool for the process, made on first use,
-so a node that fits a model every few seconds does not start and stop threads each time.
+numpy's reductions, the k-d tree queries and scipy's sparse solves release the GIL, so
+independent work (Alg. 2's E-step over frames, the rest pose's two chains of held frames,
+core.registration.register_chains) runs in parallel on threads. One pool for the process,
+made on first use, so a node that fits a model every few seconds does not start and stop
+threads each time. A function mapped must not map on the pool itself: with as many threads
+as cores, the outer calls would hold every thread the inner ones wait for.
 """
 from __future__ import annotations
 

@@ -424,8 +424,8 @@ def register_chains(registration: NonRigidRegistration, chains: list) -> tuple[l
     Why: the frames held for the rest pose's choice are registered backward from the chosen
     one to the first and forward to the last, two chains that share nothing but the rest
     pose; on the way to the first skeleton they are all the work, and the time an EM
-    iteration spends in numpy's and pykdtree's calls lets another thread run. Each chain
-    gives exactly the results it gives alone."""
+    iteration spends in numpy's, pykdtree's and SuperLU's calls (thread-safe, the GIL
+    released) lets another thread run. Each chain gives exactly the results it gives alone."""
     if not chains:
         return [], registration
     copies = [registration] + [copy.deepcopy(registration) for _ in chains[1:]]
