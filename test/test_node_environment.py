@@ -296,7 +296,6 @@ def test_a_node_process_ends_without_the_interpreters_finalisation(ending, code)
     assert ('must be > 0' in done.stderr) == (ending == 'parameters')
 
 
-
 IMPORTS_PROBE = '''
 import importlib, sys
 import numpy as np

@@ -185,7 +185,8 @@ class RegistrationProcess:
 
     def register_chains(self, registration: NonRigidRegistration, chains: list) -> list:
         """core.registration.register_chains in the child, on its threads: [[(FrameResult,
-        seconds), ...] per chain]; the frames after go on from the last chain."""
+        seconds), ...] per chain]; the frames after go on from the last chain (no chains:
+        `registration` is only installed)."""
         chains = [[(np.ascontiguousarray(observed, dtype=np.float64), stamp) for observed, stamp in chain]
                   for chain in chains]
         return self._child.call('register_chains', registration, chains)
