@@ -77,11 +77,12 @@ def read_recording(recording: Path) -> tuple:
     description = descriptions[-1][1]
     n_joints = len(description['joint_names'])
     keep = [i for i, p in enumerate(positions) if len(p) == n_joints]
+    kept_stamps = np.array(stamps)[keep]
     learned_at = min(log_s for log_s, entry in descriptions if len(entry['joint_names']) == n_joints)
-    order = np.argsort(np.array(stamps)[keep], kind='stable')
-    skeleton = PredictedSkeleton(description['joint_names'], description['parents'], np.array(stamps)[keep][order],
+    order = np.argsort(kept_stamps, kind='stable')
+    skeleton = PredictedSkeleton(description['joint_names'], description['parents'], kept_stamps[order],
                                  np.array([positions[i] for i in keep])[order])
-    return skeleton, fits, live_start_stamp(np.array(stamps)[keep], np.array(logged)[keep], learned_at)
+    return skeleton, fits, live_start_stamp(kept_stamps, np.array(logged)[keep], learned_at)
 
 
 def live_start_stamp(stamps: np.ndarray, logged: np.ndarray, learned_at: float) -> float:

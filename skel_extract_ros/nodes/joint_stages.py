@@ -408,8 +408,9 @@ def interpolated_frame(before: tuple, after: tuple, stamp: int) -> tuple:
     positions linear in time between the two, the hints (the bone rotations that give the
     twist) of the nearer frame, and the lower of the two confidences, joint by joint:
     nothing measured this frame's points, so it is trusted no more than either side."""
-    (stamp_0, header_0, positions_0, hints_0, confidence_0), (stamp_1, header_1, positions_1, hints_1,
-                                                             confidence_1) = before, after
+    # the header is the later frame's, with this frame's stamp
+    (stamp_0, _, positions_0, hints_0, confidence_0), (stamp_1, header_1, positions_1, hints_1,
+                                                       confidence_1) = before, after
     share = (stamp - stamp_0) / max(stamp_1 - stamp_0, 1)
     header = copy.deepcopy(header_1)
     set_stamp_ns(header, stamp)
